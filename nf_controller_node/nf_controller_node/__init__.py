@@ -1,0 +1,1 @@
+"""Stable normalizing-flow controller: fast evaluator, arm model, torque law (ROS-free core) and node."""

@@ -1,0 +1,109 @@
+"""Policy parameters (flow weights, noise, stiffness, damping, goal) with validation.
+
+ROS-free: ``from_msg`` reads any object with the fields of ``nf_msgs/msg/PolicyParameters``
+and ``fill_msg`` writes them, so the node modules stay thin and this stays testable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .flow_spec import FlowArchitecture
+
+
+class PolicyParameterError(ValueError):
+    """Raised when policy parameters are malformed (wrong sizes, non-finite, not positive definite)."""
+
+
+def _finite_array(name: str, values: Any, length: int | None = None) -> np.ndarray:
+    arr = np.asarray(values, dtype=np.float64).reshape(-1)
+    if length is not None and arr.size != length:
+        raise PolicyParameterError(f"{name}: expected {length} values, got {arr.size}")
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        raise PolicyParameterError(
+            f"{name}: {int(bad.sum())} non-finite value(s), first at index {int(np.argmax(bad))}"
+        )
+    return arr
+
+
+def _spd_matrix(name: str, values: Any, dim: int) -> np.ndarray:
+    mat = _finite_array(name, values, dim * dim).reshape(dim, dim)
+    if not np.allclose(mat, mat.T, rtol=1e-9, atol=1e-12):
+        raise PolicyParameterError(f"{name}: matrix is not symmetric: {mat.tolist()}")
+    try:
+        np.linalg.cholesky(mat)
+    except np.linalg.LinAlgError:
+        raise PolicyParameterError(
+            f"{name}: matrix is not positive definite (eigenvalues {np.linalg.eigvalsh(mat).tolist()})"
+        ) from None
+    return mat
+
+
+@dataclass
+class PolicyParameters:
+    """Everything the controller needs from the learner: flow weights, log-std, S, D, x_ref."""
+
+    arch: FlowArchitecture
+    weights: np.ndarray  # flat flow weights, layout in flow_spec
+    log_std: np.ndarray  # (1,) shared or (dim,), log of N
+    stiffness: np.ndarray  # S, (dim, dim), N/m in latent units
+    damping: np.ndarray  # D, (dim, dim), N s/m in latent units
+    x_ref: np.ndarray  # (dim,), m, goal in the task frame
+    version: int = 0
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Check sizes against the architecture, finiteness and S, D positive definite; raise on error."""
+        d = self.arch.dim
+        self.weights = _finite_array("weights", self.weights, self.arch.n_params)
+        self.log_std = _finite_array("log_std", self.log_std)
+        if self.log_std.size not in (1, d):
+            raise PolicyParameterError(f"log_std: expected 1 or {d} values, got {self.log_std.size}")
+        self.stiffness = _spd_matrix("stiffness S", self.stiffness, d)
+        self.damping = _spd_matrix("damping D", self.damping, d)
+        self.x_ref = _finite_array("x_ref", self.x_ref, d)
+        if self.version < 0:
+            raise PolicyParameterError(f"version must be >= 0, got {self.version}")
+
+    @classmethod
+    def from_msg(cls, msg: Any) -> PolicyParameters:
+        """Build and validate from an ``nf_msgs/msg/PolicyParameters`` (or any object with its fields)."""
+        try:
+            arch = FlowArchitecture(
+                dim=int(msg.dim),
+                n_flow=int(msg.n_flow),
+                n_hidden=int(msg.n_hidden),
+                activation=str(msg.activation),
+            )
+        except ValueError as exc:
+            raise PolicyParameterError(f"architecture: {exc}") from None
+        return cls(
+            arch=arch,
+            weights=np.asarray(msg.weights, dtype=np.float64),
+            log_std=np.asarray(msg.log_std, dtype=np.float64),
+            stiffness=np.asarray(msg.stiffness, dtype=np.float64),
+            damping=np.asarray(msg.damping, dtype=np.float64),
+            x_ref=np.asarray(msg.x_ref, dtype=np.float64),
+            version=int(msg.version),
+        )
+
+    def fill_msg(self, msg: Any) -> Any:
+        """Write these parameters into a ``nf_msgs/msg/PolicyParameters`` instance and return it."""
+        msg.version = int(self.version)
+        msg.dim = self.arch.dim
+        msg.n_flow = self.arch.n_flow
+        msg.n_hidden = self.arch.n_hidden
+        msg.activation = self.arch.activation
+        msg.weights = self.weights.tolist()
+        msg.log_std = self.log_std.tolist()
+        msg.stiffness = self.stiffness.reshape(-1).tolist()
+        msg.damping = self.damping.reshape(-1).tolist()
+        msg.x_ref = self.x_ref.tolist()
+        return msg

@@ -1,0 +1,6 @@
+"""Shared pytest setup: every ROS context in the test process stays on loopback."""
+
+import os
+
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.pop("ROS_STATIC_PEERS", None)

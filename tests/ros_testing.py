@@ -1,0 +1,71 @@
+"""Helpers for tests that start ROS 2 processes: isolated domain IDs, loopback-only discovery,
+child processes started and stopped by PID."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+_counter = itertools.count()
+
+
+def allocate_domain_id() -> int:
+    """A ROS_DOMAIN_ID for one test: distinct per test in this run, spread by PID across runs."""
+    return 1 + (os.getpid() * 7 + next(_counter)) % 200
+
+
+def ros_env(domain_id: int, **extra: str) -> dict[str, str]:
+    """Environment for a ROS process: its own domain, discovery on loopback only."""
+    env = dict(os.environ)
+    env["ROS_DOMAIN_ID"] = str(domain_id)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env.pop("ROS_STATIC_PEERS", None)
+    env["PYTHONUNBUFFERED"] = "1"
+    paths = [str(REPO / p) for p in ("nf_controller_node", "learner_node", "sim_bridge_node", "bags", "tests")]
+    env["PYTHONPATH"] = os.pathsep.join([*paths, env.get("PYTHONPATH", "")])
+    env.update(extra)
+    return env
+
+
+class RosProcess:
+    """A child Python process in a given ROS domain; stopped (SIGINT, then SIGKILL) by its PID."""
+
+    def __init__(self, args: Sequence[str], domain_id: int, log_path: Path | None = None, **extra: str):
+        self.log_path = log_path
+        out = open(log_path, "w") if log_path else subprocess.DEVNULL  # noqa: SIM115
+        self.proc = subprocess.Popen(
+            [sys.executable, *args], env=ros_env(domain_id, **extra), stdout=out, stderr=subprocess.STDOUT
+        )
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self, timeout: float = 10.0) -> int:
+        """Interrupt the process and wait; kill it if it does not exit in time. Returns its exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout)
+        return self.proc.returncode
+
+    def log(self) -> str:
+        return self.log_path.read_text() if self.log_path and self.log_path.exists() else ""
+
+    def __enter__(self) -> RosProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

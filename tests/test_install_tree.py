@@ -1,0 +1,59 @@
+"""The colcon install tree has what `ros2 run` and the ament index need."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+from ros_testing import REPO, ros_env
+
+INSTALL = REPO / "ros2_ws" / "install"
+PYTHON_PACKAGES = ("nf_controller_node", "learner_node", "sim_bridge_node")
+
+
+def _console_scripts(pkg: str) -> list[str]:
+    text = (REPO / pkg / "setup.py").read_text()
+    block = text.split('"console_scripts": [')[1].split("]")[0]
+    return [line.split("=")[0].strip().strip('"') for line in block.splitlines() if "=" in line]
+
+
+@pytest.mark.parametrize("pkg", [*PYTHON_PACKAGES, "nf_msgs"])
+def test_ament_index_marker(pkg):
+    assert (INSTALL / pkg / "share" / "ament_index" / "resource_index" / "packages" / pkg).is_file()
+    assert (INSTALL / pkg / "share" / pkg / "package.xml").is_file()
+
+
+def test_interfaces_are_indexed():
+    index = INSTALL / "nf_msgs" / "share" / "ament_index" / "resource_index" / "rosidl_interfaces" / "nf_msgs"
+    listed = set(index.read_text().split())
+    for name in ("msg/PolicyParameters.msg", "msg/RolloutChunk.msg", "msg/ControllerStatus.msg",
+                 "msg/TaskStatus.msg", "srv/ResetSim.srv", "action/RunEpisode.action"):
+        assert name in listed, f"{name} missing from {index}"
+
+
+@pytest.mark.parametrize("pkg", PYTHON_PACKAGES)
+def test_executables_in_lib_pkg_and_runnable(pkg):
+    scripts = _console_scripts(pkg)
+    assert scripts, f"{pkg} declares no console scripts"
+    for exe in scripts:
+        path = INSTALL / pkg / "lib" / pkg / exe
+        assert path.is_file() and os.access(path, os.X_OK), f"{path} missing or not executable"
+        done = subprocess.run([str(path), "--help"], env=ros_env(0), capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, f"{exe} --help failed:\n{done.stderr[-2000:]}"
+        assert "usage" in done.stdout.lower()
+
+
+def test_src_holds_relative_symlinks():
+    src = REPO / "ros2_ws" / "src"
+    for link in src.iterdir():
+        assert link.is_symlink() and not os.readlink(link).startswith("/"), link
+        assert (link / "package.xml").is_file(), link
+    assert {p.name for p in src.iterdir()} == {*PYTHON_PACKAGES, "nf_msgs"}
+
+
+def test_env_file_sets_loopback_discovery():
+    text = Path(REPO / "env.sh").read_text()
+    assert "ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST" in text
+    assert "install/setup.bash" in text
