@@ -1,0 +1,132 @@
+"""The 1 kHz controller step: joint state -> flow force -> joint torque, with safe hold on faults.
+
+ROS-free; the node feeds it joint states and publishes what it returns. One ``step`` costs
+a Pinocchio update, one compiled flow call and one compiled torque-law call.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+from numba import njit
+
+from .arm_model import ArmModel
+from .flow_eval import FlowEvaluator
+from .torque_law import (
+    NOT_FINITE,
+    TorqueLawConfig,
+    rotational_potential,
+    safe_hold_torque,
+    task_space_torque,
+)
+
+_Q_SANE = 2.0 * np.pi  # |q| beyond this (rad) cannot be a Panda joint angle
+
+
+@njit(cache=True)
+def _state_fault(q: np.ndarray, dq: np.ndarray, q_sane: float) -> int:
+    """0 if (q, dq) is usable; 1 non-finite q, 2 non-finite dq, 3 q out of any joint range."""
+    for i in range(q.shape[0]):
+        if not np.isfinite(q[i]):
+            return 1
+        if not np.isfinite(dq[i]):
+            return 2
+        if abs(q[i]) > q_sane:
+            return 3
+    return 0
+
+
+_FAULTS = {1: "joint positions not finite", 2: "joint velocities not finite", 3: "joint position out of range"}
+
+
+class FlowController:
+    """Stable flow controller for the Panda. ``step(q, dq)`` returns the joint torque to command.
+
+    On bad input it returns the safe-hold torque and latches ``fault`` until ``clear_fault()``.
+    The returned array is an internal buffer: copy it if you keep it.
+    """
+
+    def __init__(self, arm: ArmModel, evaluator: FlowEvaluator, law: TorqueLawConfig | None = None) -> None:
+        self.arm = arm
+        self.evaluator = evaluator
+        self.law = law or TorqueLawConfig()
+        n = arm.nq
+        self.n = n
+        self.tau = np.zeros(n)
+        self.tau_prev = np.full(n, np.nan)  # NaN = no previous command: no rate limit on the first one
+        self.u = np.zeros(3)  # task-space force of the flow controller (plus noise), N
+        self.flags = 0
+        self.fault = ""
+        self._g_last = np.zeros(n)
+        self._dq_zero = np.zeros(n)
+
+    # -- configuration --------------------------------------------------------------------
+    def set_evaluator(self, evaluator: FlowEvaluator) -> None:
+        """Swap the flow (new policy parameters); call only between episodes."""
+        self.evaluator = evaluator
+
+    def clear_fault(self) -> None:
+        """Re-arm after a fault (the caller has made sure the cause is gone)."""
+        self.fault = ""
+
+    def reset_rate_limit(self, tau_now: np.ndarray | None = None) -> None:
+        """Start rate limiting from ``tau_now`` (the torque the arm currently receives), or not at all."""
+        self.tau_prev[:] = np.nan if tau_now is None else tau_now
+
+    # -- the 1 kHz step -------------------------------------------------------------------
+    def step(self, q: np.ndarray, dq: np.ndarray, extra_force: np.ndarray | None = None) -> np.ndarray:
+        """Torque (Nm) for joint positions q (rad) and velocities dq (rad/s).
+
+        ``extra_force`` (N, 3) is added to the flow force: the policy's exploration noise.
+        """
+        law = self.law
+        if q.shape != (self.n,) or dq.shape != (self.n,):
+            return self._hold(q, dq, f"joint state has wrong size: q {q.shape}, dq {dq.shape}, want ({self.n},)")
+        code = _state_fault(q, dq, _Q_SANE)
+        if code:
+            return self._hold(q, dq, _FAULTS[code])
+        if self.fault:
+            return self._hold(q, dq, self.fault)
+        arm = self.arm
+        arm.update(q, dq)
+        self._g_last[:] = arm.g
+        self.evaluator.force(arm.x, arm.xdot, self.u)
+        if extra_force is not None:
+            self.u += extra_force
+        self.flags = task_space_torque(
+            arm.J, arm.R, arm.g, dq, self.u, law.rotation_ref, law.k_rot, law.d_rot, law.joint_damping,
+            law.gravity_compensation, self.tau_prev, law.torque_limits, law.max_step, self.tau,
+        )
+        if self.flags & NOT_FINITE:
+            self.fault = "controller produced a non-finite torque"
+        self.tau_prev[:] = self.tau
+        return self.tau
+
+    def hold(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
+        """Safe-hold torque: gravity compensation + joint damping (no flow)."""
+        law = self.law
+        ok = q.shape == (self.n,) and dq.shape == (self.n,) and _state_fault(q, dq, _Q_SANE) == 0
+        if ok:
+            self._g_last[:] = pin.computeGeneralizedGravity(self.arm.model, self.arm.data, q)
+        self.flags = safe_hold_torque(
+            self._g_last, dq if ok else self._dq_zero, law.hold_damping, law.gravity_compensation,
+            self.tau_prev, law.torque_limits, law.max_step, self.tau,
+        )
+        self.tau_prev[:] = self.tau
+        return self.tau
+
+    def _hold(self, q: np.ndarray, dq: np.ndarray, reason: str) -> np.ndarray:
+        if not self.fault:
+            self.fault = reason
+        return self.hold(np.asarray(q, dtype=np.float64).reshape(-1), np.asarray(dq, dtype=np.float64).reshape(-1))
+
+    # -- energy ----------------------------------------------------------------------------
+    def lyapunov(self, q: np.ndarray, dq: np.ndarray) -> float:
+        """V(q, dq) = flow potential + orientation spring energy + kinetic energy, J."""
+        arm = self.arm
+        arm.update(q, dq)
+        return (
+            self.evaluator.potential(arm.x)
+            + rotational_potential(arm.R, self.law.rotation_ref, self.law.k_rot)
+            + arm.kinetic_energy(q, dq)
+        )
