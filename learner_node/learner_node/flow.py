@@ -1,0 +1,184 @@
+"""RealNVP flow in torch for learning, with an analytic, batched, differentiable Jacobian.
+
+The architecture and the flat weight layout are defined once in
+``nf_controller_node.flow_spec``; this module and the compiled evaluator
+(``nf_controller_node.flow_eval``) both follow it. ``phi_and_jacobian`` builds J = dphi/dx
+layer by layer with the chain rule (no autograd over x), so PPO can backpropagate through J
+to the weights at the cost of one forward pass.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from nf_controller_node.flow_spec import FlowArchitecture
+
+_SQRT_HALF = math.sqrt(0.5)
+_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+
+
+def activation_and_derivative(
+    name: str, p: torch.Tensor, with_derivative: bool
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Activation ``name`` at ``p`` and, if ``with_derivative``, its derivative (both differentiable).
+
+    softplus is the exact log(1 + e^p) (torch.nn.functional.softplus switches to p above 20,
+    an error of up to 2e-9); the compiled evaluator uses the same exact form.
+    """
+    if name == "gelu":
+        cdf = 0.5 * (1.0 + torch.erf(p * _SQRT_HALF))
+        act = p * cdf  # exact (erf) GELU, torch's default
+        der = cdf + p * _INV_SQRT_2PI * torch.exp(-0.5 * p * p) if with_derivative else None
+    elif name == "tanh":
+        act = torch.tanh(p)
+        der = 1.0 - act * act if with_derivative else None
+    elif name == "softplus":
+        act = torch.logaddexp(p, torch.zeros_like(p))  # log(1 + e^p), exact (no threshold)
+        der = torch.sigmoid(p) if with_derivative else None
+    else:  # pragma: no cover - FlowArchitecture validates the name
+        raise ValueError(f"unknown activation {name!r}")
+    return act, der
+
+
+def init_flow_weights(arch: FlowArchitecture, rng: np.random.Generator, scale: float = 1.0) -> np.ndarray:
+    """Random flat weight vector in flow_spec order.
+
+    Every weight and bias is uniform in ``±scale/sqrt(fan_in)`` (torch.nn.Linear's default for
+    ``scale=1``); ``scale > 1`` gives large weights for stress tests.
+    """
+    out = []
+    shapes = arch.param_shapes()
+    for i, shape in enumerate(shapes):
+        # biases take the fan-in of the weight matrix just before them
+        fan_in = shape[1] if len(shape) == 2 else shapes[i - 1][1]
+        bound = scale / math.sqrt(fan_in)
+        out.append(rng.uniform(-bound, bound, size=int(np.prod(shape))))
+    return np.concatenate(out).astype(np.float64)
+
+
+class RealNVPFlow(nn.Module):
+    """The flow phi of flow_spec as a torch module; parameters are kept in flat-vector order."""
+
+    def __init__(
+        self,
+        arch: FlowArchitecture,
+        weights: np.ndarray | None = None,
+        seed: int = 0,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        """Build the flow; ``weights`` (flat, flow_spec order) default to ``init_flow_weights(seed)``."""
+        super().__init__()
+        self.arch = arch
+        self.dtype = dtype
+        self.params = nn.ParameterList(
+            [nn.Parameter(torch.zeros(shape, dtype=dtype)) for shape in arch.param_shapes()]
+        )
+        self._parts: list[tuple[list[int], list[int], list[int]]] = []
+        for layer in range(arch.n_layers):
+            cond, trans = arch.partition(layer)
+            order = list(cond) + list(trans)
+            inv = [order.index(i) for i in range(arch.dim)]
+            self._parts.append((list(cond), list(trans), inv))
+        if weights is None:
+            weights = init_flow_weights(arch, np.random.default_rng(seed))
+        self.load_flat(weights)
+
+    # ---- flat parameter vector -------------------------------------------------------------
+    def to_flat(self) -> np.ndarray:
+        """The weights as a flat float64 numpy vector in flow_spec order."""
+        with torch.no_grad():
+            return torch.cat([p.reshape(-1) for p in self.params]).to(torch.float64).cpu().numpy().copy()
+
+    def load_flat(self, vec: np.ndarray) -> None:
+        """Overwrite the weights from a flat vector in flow_spec order."""
+        flat = np.asarray(vec, dtype=np.float64).reshape(-1)
+        if flat.size != self.arch.n_params:
+            raise ValueError(f"weights: expected {self.arch.n_params} values, got {flat.size}")
+        if not np.isfinite(flat).all():
+            raise ValueError("weights: non-finite values")
+        src = torch.from_numpy(flat)
+        pos = 0
+        with torch.no_grad():
+            for p in self.params:
+                n = p.numel()
+                p.copy_(src[pos : pos + n].reshape(p.shape).to(p.dtype))
+                pos += n
+
+    # ---- building blocks -------------------------------------------------------------------
+    def _mlp(
+        self, layer: int, which: int, c: torch.Tensor, need_jac: bool
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Output (N, d_out) of MLP ``which`` (0: s, 1: t) of ``layer`` and its Jacobian (N, d_out, d_in)."""
+        base = 12 * layer + 6 * which
+        W1, b1, W2, b2, W3, b3 = (self.params[base + k] for k in range(6))
+        act = self.arch.activation
+        h1, g1 = activation_and_derivative(act, c @ W1.T + b1, need_jac)
+        h2, g2 = activation_and_derivative(act, h1 @ W2.T + b2, need_jac)
+        out = h2 @ W3.T + b3
+        if not need_jac:
+            return out, None
+        A = g1.unsqueeze(-1) * W1  # (N, h, d_in)
+        B = g2.unsqueeze(-1) * torch.matmul(W2, A)  # (N, h, d_in)
+        return out, torch.matmul(W3, B)  # (N, d_out, d_in)
+
+    def _layer(
+        self, layer: int, x: torch.Tensor, J: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Apply coupling layer ``layer`` to x (N, dim) and, if given, left-multiply J by its Jacobian."""
+        cond, trans, inv = self._parts[layer]
+        c, z = x[:, cond], x[:, trans]
+        need = J is not None
+        a, Ja = self._mlp(layer, 0, c, need)
+        t, Jt = self._mlp(layer, 1, c, need)
+        s = torch.tanh(a)
+        e = torch.exp(s)
+        ze = z * e
+        y = torch.cat([c, ze + t], dim=1)[:, inv]
+        if J is None:
+            return y, None
+        # d y_t / d c = diag(z e) ds/dc + dt/dc,  d y_t / d z = diag(e)
+        M = (ze * (1.0 - s * s)).unsqueeze(-1) * Ja + Jt  # (N, d_t, d_c)
+        Jc = J[:, cond, :]
+        Jtr = e.unsqueeze(-1) * J[:, trans, :] + torch.matmul(M, Jc)
+        return y, torch.cat([Jc, Jtr], dim=1)[:, inv, :]
+
+    def _inverse_layer(self, layer: int, y: torch.Tensor) -> torch.Tensor:
+        cond, trans, inv = self._parts[layer]
+        c, yt = y[:, cond], y[:, trans]
+        a, _ = self._mlp(layer, 0, c, False)
+        t, _ = self._mlp(layer, 1, c, False)
+        z = (yt - t) * torch.exp(-torch.tanh(a))
+        return torch.cat([c, z], dim=1)[:, inv]
+
+    def _as_batch(self, x: torch.Tensor | np.ndarray) -> torch.Tensor:
+        x = torch.as_tensor(x, dtype=self.dtype)
+        if x.dim() != 2 or x.shape[1] != self.arch.dim:
+            raise ValueError(f"expected a batch of shape (N, {self.arch.dim}), got {tuple(x.shape)}")
+        return x
+
+    # ---- public API ------------------------------------------------------------------------
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """phi(x) for a batch x of shape (N, dim)."""
+        y = self._as_batch(x)
+        for layer in range(self.arch.n_layers):
+            y, _ = self._layer(layer, y, None)
+        return y
+
+    def inverse(self, y: torch.Tensor) -> torch.Tensor:
+        """phi^{-1}(y) for a batch y of shape (N, dim)."""
+        x = self._as_batch(y)
+        for layer in reversed(range(self.arch.n_layers)):
+            x = self._inverse_layer(layer, x)
+        return x
+
+    def phi_and_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """phi(x) (N, dim) and J = dphi/dx (N, dim, dim), analytic and differentiable in the weights."""
+        y = self._as_batch(x)
+        J = torch.eye(self.arch.dim, dtype=y.dtype, device=y.device).expand(y.shape[0], -1, -1)
+        for layer in range(self.arch.n_layers):
+            y, J = self._layer(layer, y, J)
+        return y, J

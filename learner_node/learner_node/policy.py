@@ -1,0 +1,132 @@
+"""Stochastic normalizing-flow policy for PPO: the stable controller law plus Gaussian noise.
+
+Mean action (the deterministic, provably stable controller)::
+
+    u = -J(x)^T S [phi(x) - phi(x_ref)] - J(x)^T D J(x) xdot
+
+with trainable flow weights and a trainable log-std; S, D and x_ref are fixed.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+from torch.distributions import Normal
+
+from nf_controller_node.flow_spec import FlowArchitecture
+from nf_controller_node.policy_params import PolicyParameters
+
+from .flow import RealNVPFlow
+
+
+def _matrix(values: np.ndarray | torch.Tensor | None, dim: int, dtype: torch.dtype) -> torch.Tensor:
+    if values is None:
+        return torch.eye(dim, dtype=dtype)
+    return torch.as_tensor(np.asarray(values, dtype=np.float64).reshape(dim, dim), dtype=dtype).clone()
+
+
+class NFPolicy(nn.Module):
+    """Flow controller policy: trainable flow and log-std, fixed SPD S and D, fixed goal x_ref."""
+
+    def __init__(
+        self,
+        arch: FlowArchitecture,
+        weights: np.ndarray | None = None,
+        stiffness: np.ndarray | None = None,
+        damping: np.ndarray | None = None,
+        x_ref: np.ndarray | None = None,
+        sigma_init: float = 1.0,
+        log_std: np.ndarray | None = None,
+        seed: int = 0,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        """S, D default to identity, x_ref to zero; log_std defaults to ``[log(sigma_init)]`` (shared)."""
+        super().__init__()
+        d = arch.dim
+        self.arch = arch
+        self.dtype = dtype
+        self.flow = RealNVPFlow(arch, weights, seed=seed, dtype=dtype)
+        self.register_buffer("S", _matrix(stiffness, d, dtype))
+        self.register_buffer("D", _matrix(damping, d, dtype))
+        ref = np.zeros(d) if x_ref is None else np.asarray(x_ref, dtype=np.float64).reshape(d)
+        self.register_buffer("x_ref", torch.as_tensor(ref, dtype=dtype).clone())
+        if log_std is None:
+            if sigma_init <= 0:
+                raise ValueError(f"sigma_init must be > 0, got {sigma_init}")
+            log_std = np.array([math.log(sigma_init)])
+        ls = np.asarray(log_std, dtype=np.float64).reshape(-1)
+        if ls.size not in (1, d):
+            raise ValueError(f"log_std: expected 1 or {d} values, got {ls.size}")
+        self.log_std = nn.Parameter(torch.as_tensor(ls, dtype=dtype).clone())
+
+    # ---- controller --------------------------------------------------------------------------
+    def _batch(self, v: torch.Tensor | np.ndarray) -> torch.Tensor:
+        v = torch.as_tensor(v, dtype=self.dtype)
+        return v.unsqueeze(0) if v.dim() == 1 else v
+
+    def phi_ref(self) -> torch.Tensor:
+        """phi(x_ref), shape (dim,)."""
+        return self.flow(self.x_ref.unsqueeze(0))[0]
+
+    def mean_force(self, x: torch.Tensor, xdot: torch.Tensor) -> torch.Tensor:
+        """Deterministic controller u for batches x, xdot of shape (N, dim) (or (dim,)); returns (N, dim)."""
+        squeeze = torch.as_tensor(x).dim() == 1
+        x, xdot = self._batch(x), self._batch(xdot)
+        phi, J = self.flow.phi_and_jacobian(x)
+        err = phi - self.phi_ref()
+        # w = S e + D J xdot;  u = -J^T w
+        Jv = torch.einsum("nij,nj->ni", J, xdot)
+        w = err @ self.S.T + Jv @ self.D.T
+        u = -torch.einsum("nji,nj->ni", J, w)
+        return u[0] if squeeze else u
+
+    def std(self) -> torch.Tensor:
+        """Standard deviation of the action noise, shape (1,) or (dim,)."""
+        return torch.exp(self.log_std)
+
+    def distribution(self, x: torch.Tensor, xdot: torch.Tensor) -> Normal:
+        """Gaussian action distribution with mean ``mean_force`` and diagonal std."""
+        mean = self.mean_force(x, xdot)
+        return Normal(mean, self.std().expand_as(mean))
+
+    def log_prob(self, x: torch.Tensor, xdot: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Log-density of ``action`` summed over action dimensions; shape (N,) (or scalar if unbatched)."""
+        dist = self.distribution(x, xdot)
+        return dist.log_prob(torch.as_tensor(action, dtype=self.dtype)).sum(-1)
+
+    def lyapunov_potential(self, x: torch.Tensor) -> torch.Tensor:
+        """1/2 (phi(x)-phi(x_ref))^T S (phi(x)-phi(x_ref)) for a batch x; shape (N,) (or scalar)."""
+        squeeze = torch.as_tensor(x).dim() == 1
+        err = self.flow(self._batch(x)) - self.phi_ref()
+        v = 0.5 * torch.einsum("ni,ij,nj->n", err, self.S, err)
+        return v[0] if squeeze else v
+
+    # ---- parameters message ------------------------------------------------------------------
+    def to_params(self, version: int = 0) -> PolicyParameters:
+        """Snapshot as validated ``PolicyParameters`` (what the controller node receives)."""
+        with torch.no_grad():
+            return PolicyParameters(
+                arch=self.arch,
+                weights=self.flow.to_flat(),
+                log_std=self.log_std.detach().to(torch.float64).cpu().numpy().copy(),
+                stiffness=self.S.to(torch.float64).cpu().numpy().copy(),
+                damping=self.D.to(torch.float64).cpu().numpy().copy(),
+                x_ref=self.x_ref.to(torch.float64).cpu().numpy().copy(),
+                version=int(version),
+            )
+
+    @classmethod
+    def from_params(cls, p: PolicyParameters, dtype: torch.dtype = torch.float64) -> NFPolicy:
+        """Rebuild a policy from ``PolicyParameters``."""
+        return cls(
+            p.arch,
+            weights=p.weights,
+            stiffness=p.stiffness,
+            damping=p.damping,
+            x_ref=p.x_ref,
+            log_std=p.log_std,
+            dtype=dtype,
+        )
