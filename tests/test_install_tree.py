@@ -7,6 +7,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+
 from ros_testing import REPO, ros_env
 
 INSTALL = REPO / "ros2_ws" / "install"

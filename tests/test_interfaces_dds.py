@@ -6,6 +6,12 @@ import time
 
 import pytest
 import rclpy
+from nf_msgs.action import RunEpisode
+from nf_msgs.srv import ResetSim
+from rclpy.action import ActionClient
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
 from interface_samples import (
     TOPIC_SAMPLES,
     differences,
@@ -15,11 +21,6 @@ from interface_samples import (
     reset_request,
     reset_response,
 )
-from nf_msgs.action import RunEpisode
-from nf_msgs.srv import ResetSim
-from rclpy.action import ActionClient
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from ros_testing import REPO, RosProcess, allocate_domain_id
 
 pytestmark = pytest.mark.ros

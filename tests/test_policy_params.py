@@ -6,10 +6,11 @@ import math
 
 import numpy as np
 import pytest
-from interface_samples import policy_parameters
 
 from nf_controller_node.flow_spec import FlowArchitecture
 from nf_controller_node.policy_params import PolicyParameterError, PolicyParameters
+
+from interface_samples import policy_parameters
 
 
 def test_valid_message_round_trips():

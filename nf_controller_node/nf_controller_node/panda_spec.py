@@ -18,6 +18,16 @@ Q_MIN = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973]
 Q_MAX = np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973])  # rad
 DQ_MAX = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])  # rad/s
 
+# Drive-side joint dynamics, used by the simulator and by the controller's rigid-body model.
+# Armature: reflected rotor inertia (rotor inertia x gear ratio^2, roughly 1e-5 kg m^2 x 100^2),
+# added to the diagonal of the joint-space mass matrix (the value MuJoCo Menagerie uses for
+# the Panda). Pinocchio's ``model.armature`` must hold the same numbers so both mass matrices agree.
+JOINT_ARMATURE = np.array([0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1])  # kg m^2
+# Viscous joint friction: tau_friction = -JOINT_DAMPING * dq. The order of the viscous
+# coefficients identified on a real Panda (Gaz et al., RA-L 2019: 0.01-0.23 Nm s/rad).
+# Passive in the simulator; not part of the rigid-body bias forces.
+JOINT_DAMPING = np.array([0.1, 0.1, 0.1, 0.1, 0.05, 0.05, 0.05])  # Nm s/rad
+
 # Held gear: welded to the hand frame ``panda_hand`` (z along the approach direction).
 HAND_FRAME = "panda_hand"
 GEAR_BORE_RADIUS = 0.015  # m (30 mm bore)
@@ -37,3 +47,20 @@ def gear_inertia() -> np.ndarray:
     izz = 0.5 * m * (r1**2 + r2**2)
     ixx = m * (3.0 * (r1**2 + r2**2) + h**2) / 12.0
     return np.diag([ixx, ixx, izz])
+
+# Orientation of the hand frame for insertion, in the world frame: approach axis (hand z)
+# pointing down, hand x along world x (the Panda's usual "home" orientation).
+INSERTION_ROTATION = np.diag([1.0, -1.0, -1.0])
+
+
+def panda_urdf_path() -> str:
+    """Path of the Panda URDF shipped by the example-robot-data package (same file for MuJoCo and Pinocchio)."""
+    import sysconfig
+    from pathlib import Path
+
+    rel = Path("cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf")
+    for key in ("purelib", "platlib"):
+        path = Path(sysconfig.get_paths()[key]) / rel
+        if path.is_file():
+            return str(path)
+    raise FileNotFoundError(f"{rel} not found in site-packages: install example-robot-data (make setup)")

@@ -6,6 +6,13 @@ from __future__ import annotations
 import time
 
 import rclpy
+from nf_msgs.action import RunEpisode
+from nf_msgs.srv import ResetSim
+from rclpy.action import ActionServer
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
 from interface_samples import (
     TOPIC_SAMPLES,
     differences,
@@ -15,12 +22,6 @@ from interface_samples import (
     reset_request,
     reset_response,
 )
-from nf_msgs.action import RunEpisode
-from nf_msgs.srv import ResetSim
-from rclpy.action import ActionServer
-from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 
 class InterfacePeer(Node):

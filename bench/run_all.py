@@ -1,0 +1,56 @@
+"""Run every benchmark in sequence (never in parallel: the machine has 2 cores) and collect JSON.
+
+Each benchmark writes bench/results/<name>.json; this prints a one-line summary per target.
+Usage: python bench/run_all.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
+
+
+def _run(name: str, cmd: list[str]) -> dict | None:
+    out = RESULTS / f"{name}.json"
+    print(f"== {name}: {' '.join(cmd)}", flush=True)
+    t0 = time.monotonic()
+    done = subprocess.run(cmd, cwd=HERE.parent)
+    print(f"== {name}: exit {done.returncode} after {time.monotonic() - t0:.0f} s", flush=True)
+    return json.loads(out.read_text()) if done.returncode == 0 and out.exists() else None
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer calls, for a smoke run")
+    args = parser.parse_args()
+    RESULTS.mkdir(exist_ok=True)
+    calls = ["--calls", "20000", "--autograd-calls", "300"] if args.quick else []
+    failed = []
+    ctrl = _run("controller_step", [sys.executable, "-m", "nf_controller_node.bench", *calls,
+                                    "--out", str(RESULTS / "controller_step.json")])
+    if ctrl is None:
+        failed.append("controller_step")
+    else:
+        for r in ctrl["results"]:
+            a, c, s = r["arch"], r["compiled_step"], r["autograd_step"]
+            print(f"   n_flow={a['n_flow']} n_h={a['n_hidden']}: compiled median {c['median_us']:.1f} us, "
+                  f"p99 {c['p99_us']:.1f} us; autograd median {s['median_us']:.0f} us; "
+                  f"speedup {r['speedup_median']:.0f}x")
+    sim_script = HERE / "bench_sim.py"
+    if sim_script.exists():
+        if _run("sim", [sys.executable, str(sim_script), *(["--quick"] if args.quick else [])]) is None:
+            failed.append("sim")
+    if failed:
+        print(f"failed: {', '.join(failed)}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

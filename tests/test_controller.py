@@ -1,0 +1,130 @@
+"""The 1 kHz controller step: agrees with the pieces it is made of, and bad input never yields NaN."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from learner_node.flow import init_flow_weights
+from nf_controller_node import panda_spec
+from nf_controller_node.arm_model import ArmModel
+from nf_controller_node.controller import FlowController
+from nf_controller_node.flow_eval import FlowEvaluator
+from nf_controller_node.flow_spec import FlowArchitecture
+from nf_controller_node.lyapunov import LyapunovMonitor
+from nf_controller_node.policy_params import PolicyParameterError, PolicyParameters
+from nf_controller_node.torque_law import orientation_error
+
+ARCH = FlowArchitecture(dim=3, n_flow=2, n_hidden=16)
+Q0 = np.array([0.0, -0.12, 0.0, -2.26, 0.0, 2.14, 0.785])
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return ArmModel()
+
+
+def _controller(arm, seed=0):
+    w = init_flow_weights(ARCH, np.random.default_rng(seed), 1.0)
+    ev = FlowEvaluator(ARCH, w, 4.0 * np.eye(3), np.eye(3), np.array([0.5, 0.0, 0.1]))
+    return FlowController(arm, ev)
+
+
+def test_step_equals_composition_of_parts(arm):
+    ctrl = _controller(arm)
+    rng = np.random.default_rng(1)
+    q, dq = Q0 + rng.normal(0, 0.1, 7), rng.normal(0, 0.2, 7)
+    noise = np.array([0.5, -1.0, 0.25])
+    tau = ctrl.step(q, dq, noise).copy()
+    arm.update(q, dq)
+    u = ctrl.evaluator.force(arm.x, arm.xdot) + noise
+    e = np.zeros(3)
+    orientation_error(arm.R, ctrl.law.rotation_ref, e)
+    w = arm.J[3:] @ dq
+    expected = arm.J[:3].T @ u + arm.J[3:].T @ (ctrl.law.k_rot * e - ctrl.law.d_rot * w) \
+        - ctrl.law.joint_damping * dq + arm.g
+    expected = np.clip(expected, -panda_spec.TORQUE_LIMITS, panda_spec.TORQUE_LIMITS)
+    np.testing.assert_allclose(tau, expected, atol=1e-10)
+    assert ctrl.fault == ""
+
+
+BAD_STATES = {
+    "nan q": (np.r_[math.nan, Q0[1:]], np.zeros(7)),
+    "inf dq": (Q0, np.r_[np.zeros(6), math.inf]),
+    "short q": (Q0[:6], np.zeros(7)),
+    "long dq": (Q0, np.zeros(8)),
+    "absurd q": (Q0 + 100.0, np.zeros(7)),
+}
+
+
+@pytest.mark.parametrize("name", list(BAD_STATES))
+def test_bad_state_gives_safe_hold_never_nan(arm, name):
+    ctrl = _controller(arm)
+    good = ctrl.step(Q0, np.zeros(7)).copy()
+    q, dq = BAD_STATES[name]
+    tau = ctrl.step(q, dq)
+    assert np.all(np.isfinite(tau)), tau
+    assert np.all(np.abs(tau) <= panda_spec.TORQUE_LIMITS)
+    assert ctrl.fault, "fault reason must be set"
+    # the hold keeps the last valid gravity compensation (no damping possible without dq)
+    if name in ("nan q", "short q", "long dq", "absurd q"):
+        np.testing.assert_allclose(tau, np.clip(ctrl._g_last, good - 1.0, good + 1.0), atol=1e-9)
+    # latched: a good state afterwards still gets the hold until the fault is cleared
+    ctrl.step(Q0, np.zeros(7))
+    assert ctrl.fault
+    ctrl.clear_fault()
+    ctrl.step(Q0, np.zeros(7))
+    assert ctrl.fault == ""
+
+
+def test_random_garbage_never_produces_nan(arm):
+    ctrl = _controller(arm)
+    rng = np.random.default_rng(5)
+    specials = np.array([math.nan, math.inf, -math.inf, 1e308, -1e308, 0.0])
+    for _ in range(500):
+        q = Q0 + rng.normal(0, 1.0, 7)
+        dq = rng.normal(0, 5.0, 7)
+        for v in (q, dq):
+            mask = rng.random(7) < 0.1
+            v[mask] = rng.choice(specials, mask.sum())
+        noise = rng.normal(0, 50.0, 3) if rng.random() < 0.5 else np.array([math.nan, 0.0, 0.0])
+        tau = ctrl.step(q, dq, noise)
+        assert np.all(np.isfinite(tau)) and np.all(np.abs(tau) <= panda_spec.TORQUE_LIMITS)
+        ctrl.clear_fault()
+
+
+def test_swapped_bad_parameters_are_refused_before_use():
+    good = PolicyParameters(arch=ARCH, weights=np.zeros(ARCH.n_params), log_std=np.zeros(1),
+                            stiffness=np.eye(3), damping=np.eye(3), x_ref=np.zeros(3))
+    with pytest.raises(PolicyParameterError, match="weights"):
+        PolicyParameters(arch=ARCH, weights=np.zeros(ARCH.n_params - 1), log_std=np.zeros(1),
+                         stiffness=np.eye(3), damping=np.eye(3), x_ref=np.zeros(3))
+    with pytest.raises(PolicyParameterError, match="non-finite"):
+        w = good.weights.copy()
+        w[3] = math.nan
+        PolicyParameters(arch=ARCH, weights=w, log_std=np.zeros(1), stiffness=np.eye(3),
+                         damping=np.eye(3), x_ref=np.zeros(3))
+
+
+def test_gravity_switch_drops_g(arm):
+    ctrl = _controller(arm)
+    with_g = ctrl.step(Q0, np.zeros(7)).copy()
+    ctrl.law.gravity_compensation = False
+    ctrl.reset_rate_limit()
+    without = ctrl.step(Q0, np.zeros(7))
+    arm.update(Q0, np.zeros(7))
+    np.testing.assert_allclose(with_g - without, arm.g, atol=1e-9)
+
+
+def test_lyapunov_monitor_counts_rises():
+    mon = LyapunovMonitor(dt=0.001, tolerance=1e-6)
+    for v in (1.0, 0.9, 0.8, 0.85, 0.7):
+        mon.update(v)
+    assert mon.rises == 1 and mon.max_rise == pytest.approx(0.05)
+    assert mon.rate < 0.0
+    mon.update(math.nan)
+    assert mon.rises == 2
+    with pytest.raises(ValueError):
+        LyapunovMonitor(dt=0.0)
