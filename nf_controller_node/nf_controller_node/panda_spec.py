@@ -5,6 +5,8 @@ Units: metres, kilograms, radians, newton-metres, seconds.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 JOINT_NAMES = tuple(f"panda_joint{i}" for i in range(1, 8))
@@ -54,13 +56,38 @@ INSERTION_ROTATION = np.diag([1.0, -1.0, -1.0])
 
 
 def panda_urdf_path() -> str:
-    """Path of the Panda URDF shipped by the example-robot-data package (same file for MuJoCo and Pinocchio)."""
-    import sysconfig
+    """Path of the Panda URDF shipped by example-robot-data (the one file MuJoCo and Pinocchio load)."""
+    import importlib.metadata
+    import sys
     from pathlib import Path
 
-    rel = Path("cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf")
-    for key in ("purelib", "platlib"):
-        path = Path(sysconfig.get_paths()[key]) / rel
-        if path.is_file():
-            return str(path)
-    raise FileNotFoundError(f"{rel} not found in site-packages: install example-robot-data (make setup)")
+    rel = "share/example-robot-data/robots/panda_description/urdf/panda.urdf"
+    try:
+        files = importlib.metadata.files("example-robot-data") or []
+    except importlib.metadata.PackageNotFoundError:
+        files = []
+    for f in files:
+        if str(f).endswith(rel) and Path(f.locate()).is_file():
+            return str(f.locate())
+    for entry in sys.path:  # any cmeel prefix on the path
+        candidate = Path(entry) / "cmeel.prefix" / rel
+        if candidate.is_file():
+            return str(candidate)
+    raise FileNotFoundError(
+        "panda.urdf not found: install the 'example-robot-data' package (make setup); it ships the "
+        "Panda URDF under cmeel.prefix/share/example-robot-data"
+    )
+
+
+@dataclass(frozen=True)
+class HeldPartInertia:
+    """Mass properties and tool-centre point of a part held rigidly by the hand (hand frame)."""
+
+    mass: float  # kg
+    com_in_hand: np.ndarray  # m, centre of mass in the panda_hand frame
+    inertia: np.ndarray  # kg m^2, 3x3 about the centre of mass, hand axes
+    tcp_in_hand: np.ndarray  # m, the point the controller drives to x_ref
+
+
+GEAR_PART = HeldPartInertia(GEAR_MASS, GEAR_COM_IN_HAND, gear_inertia(), TCP_IN_HAND)
+

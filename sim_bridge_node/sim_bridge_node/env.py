@@ -1,0 +1,271 @@
+"""Simulation environments for the insertion tasks: reset, 1 kHz torque steps, task-space state.
+
+``InsertionEnv(task)`` covers all tasks (``gear``, ``peg``, ``block``, ``free``). Each ``step``
+runs MuJoCo's ``mj_step2`` (integrate with the given torques) followed by ``mj_step1`` (positions,
+velocities, contacts and bias forces of the *new* state), which costs one ``mj_step`` but leaves
+every derived quantity (TCP pose, Jacobian, ``qfrc_bias``, contacts) consistent with ``q, dq``,
+as a robot's sensors would be. ``contact_force`` is the force MuJoCo applied on the held part
+during the last step.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import mujoco
+import numpy as np
+
+from sim_bridge_node.scenes import BLOCK_START_STD, CONTACT_FORCE_SENSOR, Scene, build_scene
+
+ARM_START_STD = 0.2  # rad, per joint (the paper's simulated peg-in-hole start distribution)
+START_CLEARANCE = 0.01  # m, sampled starts keep the TCP at least this far above the fixture mouth
+MAX_START_TRIES = 1000
+
+
+class Observation(NamedTuple):
+    """State after a reset or a step (copies)."""
+
+    q: np.ndarray
+    dq: np.ndarray
+    x: np.ndarray
+    xdot: np.ndarray
+    time: float
+
+
+class InsertionEnv:
+    """One simulated world: the Panda holding a gear or peg (or the 2-D block) and its fixture.
+
+    ``reset(seed)``: ``seed`` None or negative gives the fixed start ``q_mean``; otherwise a
+    start is drawn from ``N(q_mean, start_std^2)`` with a ``numpy`` Generator seeded by ``seed``,
+    redrawn until it is inside the joint limits, collision-free and above the fixture.
+    ``step(tau)``: one 1 ms physics step with the joint torques (forces for the block) ``tau``,
+    clamped to the actuator limits. Malformed torques raise ``ValueError`` before anything changes.
+    """
+
+    def __init__(
+        self,
+        task: str = "gear",
+        *,
+        plane: str = "vertical",
+        start_std: float | np.ndarray | None = None,
+        scene: Scene | None = None,
+    ):
+        """Build the scene for ``task`` (or use ``scene``, e.g. shared by a batch) and reset."""
+        self.scene = scene if scene is not None else build_scene(task, plane=plane)
+        task = self.scene.task
+        self.task = task
+        self.model = self.scene.model
+        self.data = mujoco.MjData(self.model)
+        m = self.model
+        self._qadr = np.array([m.joint(n).qposadr[0] for n in self.scene.joint_names])
+        self._vadr = np.array([m.joint(n).dofadr[0] for n in self.scene.joint_names])
+        self._contiguous = bool(
+            np.array_equal(self._qadr, np.arange(m.nq)) and np.array_equal(self._vadr, np.arange(m.nv))
+        )
+        self._act = np.array([m.actuator(n).id for n in self.scene.actuator_names])
+        if not np.array_equal(self._act, np.arange(m.nu)):
+            raise RuntimeError("actuators must be declared in joint order")
+        self._ctrl_lo = m.actuator_ctrlrange[:, 0].copy()
+        self._ctrl_hi = m.actuator_ctrlrange[:, 1].copy()
+        self._q_lo = m.jnt_range[[m.joint(n).id for n in self.scene.joint_names], 0].copy()
+        self._q_hi = m.jnt_range[[m.joint(n).id for n in self.scene.joint_names], 1].copy()
+        self._site = m.site(self.scene.tcp_site).id
+        self._held = m.body(self.scene.held_body).id
+        self._held_geoms = np.flatnonzero(m.geom_bodyid == self._held)
+        self._force_adr = m.sensor_adr[m.sensor(CONTACT_FORCE_SENSOR).id]
+        default_std = BLOCK_START_STD if task == "block" else ARM_START_STD
+        std = default_std if start_std is None else start_std
+        self.start_std = np.broadcast_to(np.asarray(std, dtype=float), (self.nq,)).copy()
+        self._vel6 = np.zeros(6)
+        self._ctrl = self.data.ctrl  # view into MjData, reused every step
+        self.last_torque = np.zeros(m.nu)
+        self.reset()
+
+    # ------------------------------------------------------------------ sizes and limits
+    @property
+    def nq(self) -> int:
+        """Number of controlled joints (7 for the arm, 2 for the block)."""
+        return len(self._qadr)
+
+    @property
+    def nu(self) -> int:
+        """Number of actuators (equal to ``nq``)."""
+        return self.model.nu
+
+    @property
+    def torque_limits(self) -> np.ndarray:
+        """Symmetric actuator limits (Nm for the arm, N for the block)."""
+        return self._ctrl_hi.copy()
+
+    @property
+    def q_mean(self) -> np.ndarray:
+        """Fixed start configuration and mean of the start distribution."""
+        return self.scene.q_mean.copy()
+
+    @property
+    def q_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper joint limits."""
+        return self._q_lo.copy(), self._q_hi.copy()
+
+    # ------------------------------------------------------------------ reset and step
+    def reset(self, seed: int | None = None, q: np.ndarray | None = None) -> Observation:
+        """Start a new episode at ``q`` (if given), the fixed start, or a start drawn with ``seed``."""
+        if q is not None:
+            q0 = self._checked_vector(q, self.nq, "start configuration")
+            problem = self._start_problem(q0, require_above=False)
+            if problem:
+                raise ValueError(f"start configuration rejected: {problem}")
+        elif seed is None or seed < 0:
+            q0 = self.scene.q_mean.copy()
+        else:
+            q0 = self.sample_start(seed)
+        self._set_state(q0)
+        return self.observation()
+
+    def sample_start(self, seed: int) -> np.ndarray:
+        """The start configuration ``reset(seed)`` would use (deterministic per seed)."""
+        rng = np.random.default_rng(seed)
+        for _ in range(MAX_START_TRIES):
+            q0 = self.scene.q_mean + self.start_std * rng.standard_normal(self.nq)
+            if not self._start_problem(q0, require_above=True):
+                return q0
+        raise RuntimeError(f"no valid start found in {MAX_START_TRIES} draws (seed {seed})")
+
+    def _start_problem(self, q0: np.ndarray, *, require_above: bool) -> str:
+        """Why ``q0`` is not a valid start ("" if it is). Clobbers the simulation state."""
+        if np.any(q0 <= self._q_lo) or np.any(q0 >= self._q_hi):
+            bad = np.flatnonzero((q0 <= self._q_lo) | (q0 >= self._q_hi))
+            return f"outside the joint limits at {[self.scene.joint_names[i] for i in bad]}"
+        self._set_state(q0)
+        if self.data.ncon:
+            c = self.data.contact
+            names = self.model.geom
+            pairs = {(names(g1).name, names(g2).name) for g1, g2 in zip(c.geom1, c.geom2, strict=True)}
+            return f"in collision: {sorted(pairs)}"
+        if require_above and self.data.site_xpos[self._site, 2] < self.scene.insertion_top + START_CLEARANCE:
+            return "TCP not above the fixture"
+        return ""
+
+    def _set_state(self, q0: np.ndarray) -> None:
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[self._qadr] = q0
+        self.last_torque[:] = 0.0
+        mujoco.mj_forward(self.model, self.data)
+
+    @staticmethod
+    def _checked_vector(value: np.ndarray, size: int, what: str) -> np.ndarray:
+        try:
+            arr = np.asarray(value, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{what} must be a numeric array of {size} values: {exc}") from None
+        if arr.shape != (size,):
+            raise ValueError(f"{what} must have shape ({size},), got shape {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            bad = np.flatnonzero(~np.isfinite(arr)).tolist()
+            raise ValueError(f"{what} contains NaN or Inf at index {bad}: {arr.tolist()}")
+        return arr
+
+    def step(self, tau: np.ndarray) -> None:
+        """Advance 1 ms with torques ``tau`` (clamped to the limits). Raises ``ValueError`` on
+        NaN/Inf or a wrong size, leaving the state untouched."""
+        arr = self._checked_vector(tau, self.model.nu, "torque command")
+        self._step_unchecked(arr)
+
+    def _step_unchecked(self, tau: np.ndarray) -> None:
+        np.clip(tau, self._ctrl_lo, self._ctrl_hi, out=self.last_torque)
+        self._step_clamped()
+
+    def _step_clamped(self) -> None:
+        """Physics step with ``last_torque`` already valid and clamped (the batch calls this)."""
+        self._ctrl[:] = self.last_torque
+        mujoco.mj_step2(self.model, self.data)
+        mujoco.mj_step1(self.model, self.data)
+
+    def observation(self) -> Observation:
+        """Joint and task-space state now."""
+        return Observation(self.q, self.dq, self.x, self.xdot, self.time)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def q(self) -> np.ndarray:
+        """Joint positions (rad; m for the block)."""
+        return self.data.qpos[: self.nq].copy() if self._contiguous else self.data.qpos[self._qadr]
+
+    @property
+    def dq(self) -> np.ndarray:
+        """Joint velocities."""
+        return self.data.qvel[: self.nq].copy() if self._contiguous else self.data.qvel[self._vadr]
+
+    @property
+    def x(self) -> np.ndarray:
+        """TCP position in the world frame (m)."""
+        return self.data.site_xpos[self._site].copy()
+
+    @property
+    def tcp_rotation(self) -> np.ndarray:
+        """TCP orientation (3x3, columns = hand axes in the world frame)."""
+        return self.data.site_xmat[self._site].reshape(3, 3).copy()
+
+    @property
+    def xdot(self) -> np.ndarray:
+        """TCP linear velocity in the world frame (m/s)."""
+        mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_SITE, self._site, self._vel6, 0)
+        return self._vel6[3:].copy()
+
+    def tcp_jacobian(self) -> np.ndarray:
+        """6 x nv Jacobian of the TCP site, rows: linear velocity, then angular velocity (world)."""
+        jac = np.zeros((6, self.model.nv))
+        mujoco.mj_jacSite(self.model, self.data, jac[:3], jac[3:], self._site)
+        return jac
+
+    @property
+    def bias_torques(self) -> np.ndarray:
+        """Gravity, Coriolis and centrifugal joint torques at the current state (``qfrc_bias``)."""
+        return self.data.qfrc_bias[self._vadr].copy()
+
+    @property
+    def time(self) -> float:
+        """Simulated time since reset (s)."""
+        return float(self.data.time)
+
+    # ------------------------------------------------------------------ task
+    @property
+    def goal_position(self) -> np.ndarray:
+        """TCP position at full insertion (world frame): the controller's ``x_ref``."""
+        return self.scene.goal_position.copy()
+
+    @property
+    def insertion_depth(self) -> float:
+        """How far the TCP is below the fixture mouth while inside the opening (m, >= 0)."""
+        tcp = self.data.site_xpos[self._site]
+        lateral = np.abs(tcp[:2] - self.scene.insertion_axis_xy)
+        inside = np.hypot(*lateral) < self.scene.lateral_tolerance
+        if self.task == "peg":
+            inside = bool(np.max(lateral) < self.scene.lateral_tolerance)
+        elif self.task == "block":
+            inside = bool(lateral[0] < self.scene.lateral_tolerance)
+        depth = self.scene.insertion_top - tcp[2]
+        return float(max(depth, 0.0)) if inside else 0.0
+
+    @property
+    def success(self) -> bool:
+        """Inserted at least the task's success depth (16 mm gear/peg, 25 mm block)."""
+        return self.task != "free" and self.insertion_depth >= self.scene.success_depth
+
+    @property
+    def contact_force(self) -> np.ndarray:
+        """Net contact force on the held part (gear, peg or block) during the last step (N, world)."""
+        adr = self._force_adr
+        return -self.data.sensordata[adr : adr + 3].copy()
+
+    @property
+    def penetration(self) -> float:
+        """Deepest interpenetration of the held part with anything, now (m, >= 0)."""
+        n = self.data.ncon
+        if n == 0:
+            return 0.0
+        c = self.data.contact
+        mine = np.isin(c.geom1, self._held_geoms) | np.isin(c.geom2, self._held_geoms)
+        if not np.any(mine):
+            return 0.0
+        return float(max(0.0, -np.min(c.dist[mine])))

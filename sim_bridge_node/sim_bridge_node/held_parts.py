@@ -1,0 +1,138 @@
+"""Parts held rigidly by the Panda hand: the gear (main task) and the cylindrical peg.
+
+Each part is a child body of ``panda_hand`` with its own explicit mass and inertia (its geoms
+carry no mass), contact geometry made of convex pieces, and a TCP site at the centre of the
+part's leading face (the point the controller drives to the goal).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from nf_controller_node import panda_spec
+from sim_bridge_node.panda_model import CONTACT_MOVING, set_weld_inertia
+
+GEAR_SEGMENTS = 16  # box pieces around the bore; the bore is the regular 16-gon of inradius 15 mm
+GEAR_TEETH = 24  # drawn only, no contact
+GEAR_RGBA = np.array([0.95, 0.65, 0.1, 1.0])
+PEG_RGBA = np.array([0.2, 0.45, 0.95, 1.0])
+
+# Peg (not in panda_spec: the peg task is simulation only). A 23 mm aluminium rod, 60 mm long,
+# held with 10 mm of it between the fingertip pads; its tip sits 40 mm below the fingertips so
+# the fingers stay clear of the hole block at full insertion.
+PEG_RADIUS = 0.0115  # m
+PEG_LENGTH = 0.060  # m
+PEG_TOP_IN_HAND = 0.0934  # m, z of the peg's upper face in the hand frame
+PEG_MASS = 2700.0 * np.pi * PEG_RADIUS**2 * PEG_LENGTH  # kg, aluminium (about 0.067 kg)
+PEG_COM_IN_HAND = np.array([0.0, 0.0, PEG_TOP_IN_HAND + 0.5 * PEG_LENGTH])
+PEG_TCP_IN_HAND = np.array([0.0, 0.0, PEG_TOP_IN_HAND + PEG_LENGTH])  # tip centre
+
+
+def peg_inertia() -> np.ndarray:
+    """Rotational inertia (3x3, kg m^2) of the solid peg about its centre of mass, hand axes."""
+    m, r, h = PEG_MASS, PEG_RADIUS, PEG_LENGTH
+    ixx = m * (3.0 * r**2 + h**2) / 12.0
+    return np.diag([ixx, ixx, 0.5 * m * r**2])
+
+
+@dataclass(frozen=True)
+class HeldPart:
+    """Names and hand-frame geometry of the part the hand holds."""
+
+    kind: str  # "gear" or "peg"
+    body: str  # MuJoCo body name
+    tcp_site: str  # MuJoCo site name at the part's leading face
+    tcp_in_hand: np.ndarray  # TCP position in the panda_hand frame
+    mass: float
+    com_in_hand: np.ndarray
+    inertia: np.ndarray  # 3x3 about the COM, hand axes
+
+
+GEAR = HeldPart(
+    "gear",
+    "gear",
+    panda_spec.TCP_FRAME,
+    panda_spec.TCP_IN_HAND,
+    panda_spec.GEAR_MASS,
+    panda_spec.GEAR_COM_IN_HAND,
+    panda_spec.gear_inertia(),
+)
+PEG = HeldPart("peg", "peg", "peg_tcp", PEG_TCP_IN_HAND, PEG_MASS, PEG_COM_IN_HAND, peg_inertia())
+
+
+def _solid_geom(body: mujoco.MjsBody, name: str, rgba: np.ndarray) -> mujoco.MjsGeom:
+    geom = body.add_geom()
+    geom.name = name
+    geom.contype = CONTACT_MOVING
+    geom.conaffinity = 0
+    geom.rgba = rgba
+    return geom
+
+
+def _visual_geom(body: mujoco.MjsBody, name: str, rgba: np.ndarray) -> mujoco.MjsGeom:
+    geom = body.add_geom()
+    geom.name = name
+    geom.contype = 0
+    geom.conaffinity = 0
+    geom.group = 1
+    geom.rgba = rgba
+    return geom
+
+
+def add_gear(hand: mujoco.MjsBody) -> HeldPart:
+    """Weld the gear ring to ``hand``: body ``gear``, site ``gear_tcp``, 16 box segments.
+
+    Body frame = hand axes, origin at the gear's centre (its COM). Each segment is a box whose
+    inner face lies exactly at the bore radius; the boxes are as wide as the outer polygon
+    needs, so neighbours overlap outside the bore and the bore stays a clean 16-gon.
+    """
+    r_in, r_out, depth = panda_spec.GEAR_BORE_RADIUS, panda_spec.GEAR_OUTER_RADIUS, panda_spec.GEAR_DEPTH
+    body = hand.add_body()
+    body.name = GEAR.body
+    body.pos = GEAR.com_in_hand
+    set_weld_inertia(body, GEAR.mass, np.zeros(3), GEAR.inertia)
+    half_radial = 0.5 * (r_out - r_in)
+    half_tangent = r_out * np.tan(np.pi / GEAR_SEGMENTS)
+    for k in range(GEAR_SEGMENTS):
+        angle = 2.0 * np.pi * k / GEAR_SEGMENTS
+        geom = _solid_geom(body, f"gear_segment_{k}", GEAR_RGBA)
+        geom.type = mujoco.mjtGeom.mjGEOM_BOX
+        geom.size = [half_radial, half_tangent, 0.5 * depth]
+        radius = r_in + half_radial
+        geom.pos = [radius * np.cos(angle), radius * np.sin(angle), 0.0]
+        geom.quat = [np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)]
+    tooth = 0.004  # m, drawn tooth height
+    for k in range(GEAR_TEETH):
+        angle = 2.0 * np.pi * (k + 0.5) / GEAR_TEETH
+        geom = _visual_geom(body, f"gear_tooth_{k}", GEAR_RGBA * [0.8, 0.8, 0.8, 1.0])
+        geom.type = mujoco.mjtGeom.mjGEOM_BOX
+        geom.size = [0.5 * tooth + 0.001, 0.0025, 0.5 * depth * 0.9]
+        radius = r_out + 0.5 * tooth - 0.001
+        geom.pos = [radius * np.cos(angle), radius * np.sin(angle), 0.0]
+        geom.quat = [np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)]
+    site = body.add_site()
+    site.name = GEAR.tcp_site
+    site.pos = GEAR.tcp_in_hand - GEAR.com_in_hand
+    site.size = [0.003, 0.003, 0.003]
+    site.rgba = [1.0, 0.1, 0.1, 1.0]
+    return GEAR
+
+
+def add_peg(hand: mujoco.MjsBody) -> HeldPart:
+    """Weld the 23 mm peg to ``hand``: body ``peg`` (one convex cylinder), site ``peg_tcp`` at its tip."""
+    body = hand.add_body()
+    body.name = PEG.body
+    body.pos = PEG.com_in_hand
+    set_weld_inertia(body, PEG.mass, np.zeros(3), PEG.inertia)
+    geom = _solid_geom(body, "peg_cylinder", PEG_RGBA)
+    geom.type = mujoco.mjtGeom.mjGEOM_CYLINDER
+    geom.size = [PEG_RADIUS, 0.5 * PEG_LENGTH, 0.0]
+    site = body.add_site()
+    site.name = PEG.tcp_site
+    site.pos = PEG.tcp_in_hand - PEG.com_in_hand
+    site.size = [0.003, 0.003, 0.003]
+    site.rgba = [1.0, 0.1, 0.1, 1.0]
+    return PEG
