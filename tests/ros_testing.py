@@ -38,7 +38,7 @@ class RosProcess:
 
     def __init__(self, args: Sequence[str], domain_id: int, log_path: Path | None = None, **extra: str):
         self.log_path = log_path
-        out = open(log_path, "w") if log_path else subprocess.DEVNULL  # noqa: SIM115
+        out = open(log_path, "w") if log_path else subprocess.DEVNULL
         self.proc = subprocess.Popen(
             [sys.executable, *args], env=ros_env(domain_id, **extra), stdout=out, stderr=subprocess.STDOUT
         )

@@ -15,7 +15,7 @@ from nf_controller_node.flow_eval import FlowEvaluator
 from nf_controller_node.flow_spec import FlowArchitecture
 from nf_controller_node.lyapunov import LyapunovMonitor
 from nf_controller_node.policy_params import PolicyParameterError, PolicyParameters
-from nf_controller_node.torque_law import orientation_error
+from nf_controller_node.torque_law import TorqueLawConfig, orientation_error
 
 ARCH = FlowArchitecture(dim=3, n_flow=2, n_hidden=16)
 Q0 = np.array([0.0, -0.12, 0.0, -2.26, 0.0, 2.14, 0.785])
@@ -111,7 +111,7 @@ def test_swapped_bad_parameters_are_refused_before_use():
 def test_gravity_switch_drops_g(arm):
     ctrl = _controller(arm)
     with_g = ctrl.step(Q0, np.zeros(7)).copy()
-    ctrl.law.gravity_compensation = False
+    ctrl.set_law(TorqueLawConfig(gravity_compensation=False))
     ctrl.reset_rate_limit()
     without = ctrl.step(Q0, np.zeros(7))
     arm.update(Q0, np.zeros(7))

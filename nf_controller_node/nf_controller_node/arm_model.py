@@ -1,8 +1,9 @@
-"""Pinocchio model of the Panda holding the gear: kinematics, Jacobian, gravity and mass matrix.
+"""Pinocchio model of the Panda holding a part: kinematics, Jacobian, gravity and mass matrix.
 
 Built once from the example-robot-data URDF (the file MuJoCo loads too): finger joints locked,
-the gear's inertia appended to joint 7, a ``gear_tcp`` frame at the bore mouth, rotor
-armature on the joints. ``update(q, dq)`` then only computes (no allocation of model data).
+the held part's inertia appended to joint 7 (the gear by default), a ``gear_tcp`` frame at the
+part's tool-centre point, rotor armature on the joints. ``update(q, dq)`` then only computes
+(no allocation of model data).
 """
 
 from __future__ import annotations
@@ -20,8 +21,10 @@ class ArmModel:
         self,
         urdf_path: str | None = None,
         armature: np.ndarray | None = None,
-        gear_mass: float = panda_spec.GEAR_MASS,
+        part: panda_spec.HeldPartInertia | None = panda_spec.GEAR_PART,
     ) -> None:
+        """``part``: mass, com_in_hand, inertia, tcp_in_hand of the held part (any object with these
+        attributes, e.g. the simulator's held-part description); None = empty hand, TCP at the gear's."""
         full = pin.buildModelFromUrdf(urdf_path or panda_spec.panda_urdf_path())
         q_full = pin.neutral(full)
         lock = []
@@ -37,13 +40,14 @@ class ArmModel:
         hand = model.frames[model.getFrameId(panda_spec.HAND_FRAME)]
         joint7 = hand.parentJoint
         jMhand = hand.placement  # hand frame in joint-7 frame
-        if gear_mass > 0.0:
+        if part is not None and part.mass > 0.0:
             R = jMhand.rotation
             inertia = pin.Inertia(
-                gear_mass, jMhand.act(panda_spec.GEAR_COM_IN_HAND), R @ panda_spec.gear_inertia() @ R.T
+                float(part.mass), jMhand.act(np.asarray(part.com_in_hand, float)), R @ part.inertia @ R.T
             )
             model.appendBodyToJoint(joint7, inertia, pin.SE3.Identity())
-        tcp = pin.SE3(np.eye(3), panda_spec.TCP_IN_HAND)
+        tcp_in_hand = panda_spec.TCP_IN_HAND if part is None else part.tcp_in_hand
+        tcp = pin.SE3(np.eye(3), np.asarray(tcp_in_hand, float))
         self.tcp_id = model.addFrame(
             pin.Frame(panda_spec.TCP_FRAME, joint7, model.getFrameId(panda_spec.HAND_FRAME),
                       jMhand * tcp, pin.FrameType.OP_FRAME)
@@ -61,16 +65,24 @@ class ArmModel:
         self.R = np.eye(3)  # hand orientation in the base frame
 
     def update(self, q: np.ndarray, dq: np.ndarray) -> None:
-        """Compute TCP pose, velocity, Jacobian and gravity torque for joint state (q [rad], dq [rad/s])."""
-        model, data = self.model, self.data
+        """Compute TCP pose, velocity, Jacobian and gravity torque for joint state (q [rad], dq [rad/s]).
+
+        Rebinds the attributes to Pinocchio's results, which are views into its data (no copies:
+        each small numpy operation costs about a microsecond at 1 kHz); they stay valid until the
+        next call into this model. Copy what you keep.
+        """
+        self.kinematics(q)
+        self.xdot = self.J[:3] @ dq
+
+    def kinematics(self, q: np.ndarray) -> None:
+        """Like ``update`` without the TCP velocity (``xdot`` is left as it was)."""
+        model, data, fid = self.model, self.data, self.tcp_id
         pin.computeJointJacobians(model, data, q)
-        pin.updateFramePlacement(model, data, self.tcp_id)
-        self.J[:] = pin.getFrameJacobian(model, data, self.tcp_id, pin.LOCAL_WORLD_ALIGNED)
-        self.g[:] = pin.computeGeneralizedGravity(model, data, q)
-        oMtcp = data.oMf[self.tcp_id]
-        self.x[:] = oMtcp.translation
-        self.R[:] = oMtcp.rotation
-        np.dot(self.J[:3], dq, out=self.xdot)
+        oMtcp = pin.updateFramePlacement(model, data, fid)
+        self.J = pin.getFrameJacobian(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
+        self.g = pin.computeGeneralizedGravity(model, data, q)
+        self.x = oMtcp.translation
+        self.R = oMtcp.rotation
 
     def mass_matrix(self, q: np.ndarray) -> np.ndarray:
         """Joint-space mass matrix M(q) including rotor armature, kg m^2 (symmetric)."""

@@ -11,7 +11,7 @@ import pinocchio as pin
 from numba import njit
 
 from .arm_model import ArmModel
-from .flow_eval import FlowEvaluator
+from .flow_eval import FlowEvaluator, force_kernel
 from .torque_law import (
     NOT_FINITE,
     TorqueLawConfig,
@@ -37,33 +37,67 @@ def _state_fault(q: np.ndarray, dq: np.ndarray, q_sane: float) -> int:
 
 
 _FAULTS = {1: "joint positions not finite", 2: "joint velocities not finite", 3: "joint position out of range"}
+_FLOW_FAILED = -1
+
+
+@njit(cache=True)
+def _flow_step(J, R, g, x, dq, noise, wp, layout, code, consts, work, gains, R_ref, limits, tau_prev, xdot, u, tau):
+    """One fused compiled call: xdot = J_v dq, u = flow force + noise, then the joint torque law.
+
+    gains = [k_rot, d_rot, joint_damping, gravity (1/0), max torque step]. Returns the torque law's
+    flags, or _FLOW_FAILED (tau untouched) when the flow's output is not finite.
+    """
+    n = dq.shape[0]
+    for r in range(3):
+        acc = 0.0
+        for j in range(n):
+            acc += J[r, j] * dq[j]
+        xdot[r] = acc
+    if force_kernel(x, xdot, wp, layout, code, consts, work, u) != 0:
+        return _FLOW_FAILED
+    for r in range(3):
+        u[r] += noise[r]
+    return task_space_torque(J, R, g, dq, u, R_ref, gains[0], gains[1], gains[2], gains[3] > 0.0,
+                             tau_prev, limits, gains[4], tau)
 
 
 class FlowController:
     """Stable flow controller for the Panda. ``step(q, dq)`` returns the joint torque to command.
 
     On bad input it returns the safe-hold torque and latches ``fault`` until ``clear_fault()``.
-    The returned array is an internal buffer: copy it if you keep it.
+    The returned array is an internal buffer: copy it if you keep it. ``evaluator`` is a
+    ``FlowEvaluator`` (fused compiled path) or any object with ``force(x, xdot, out)`` and
+    ``potential(x)`` (e.g. a baseline MLP policy). ``law`` is read at construction and by
+    ``set_law``: change gains through ``set_law``.
     """
 
     def __init__(self, arm: ArmModel, evaluator: FlowEvaluator, law: TorqueLawConfig | None = None) -> None:
         self.arm = arm
-        self.evaluator = evaluator
-        self.law = law or TorqueLawConfig()
         n = arm.nq
         self.n = n
         self.tau = np.zeros(n)
         self.tau_prev = np.full(n, np.nan)  # NaN = no previous command: no rate limit on the first one
         self.u = np.zeros(3)  # task-space force of the flow controller (plus noise), N
+        self.xdot = np.zeros(3)  # TCP velocity of the last step, m/s
         self.flags = 0
         self.fault = ""
         self._g_last = np.zeros(n)
         self._dq_zero = np.zeros(n)
+        self._no_noise = np.zeros(3)
+        self.set_law(law or TorqueLawConfig())
+        self.set_evaluator(evaluator)
 
     # -- configuration --------------------------------------------------------------------
     def set_evaluator(self, evaluator: FlowEvaluator) -> None:
         """Swap the flow (new policy parameters); call only between episodes."""
         self.evaluator = evaluator
+        self._kernel_args = evaluator.kernel_args() if isinstance(evaluator, FlowEvaluator) else None
+
+    def set_law(self, law: TorqueLawConfig) -> None:
+        """Set gains and limits of the torque law; call only between episodes."""
+        self.law = law
+        self._gains = np.array([law.k_rot, law.d_rot, law.joint_damping, float(law.gravity_compensation),
+                                law.max_step])
 
     def clear_fault(self) -> None:
         """Re-arm after a fault (the caller has made sure the cause is gone)."""
@@ -87,16 +121,26 @@ class FlowController:
             return self._hold(q, dq, _FAULTS[code])
         if self.fault:
             return self._hold(q, dq, self.fault)
-        arm = self.arm
-        arm.update(q, dq)
-        self._g_last[:] = arm.g
-        self.evaluator.force(arm.x, arm.xdot, self.u)
-        if extra_force is not None:
-            self.u += extra_force
-        self.flags = task_space_torque(
-            arm.J, arm.R, arm.g, dq, self.u, law.rotation_ref, law.k_rot, law.d_rot, law.joint_damping,
-            law.gravity_compensation, self.tau_prev, law.torque_limits, law.max_step, self.tau,
-        )
+        arm, law = self.arm, self.law
+        arm.kinematics(q)
+        self._g_last = arm.g  # last valid gravity torque, kept for a hold on a bad state
+        noise = self._no_noise if extra_force is None else extra_force
+        if self._kernel_args is not None:
+            self.flags = _flow_step(arm.J, arm.R, arm.g, arm.x, dq, noise, *self._kernel_args, self._gains,
+                                    law.rotation_ref, law.torque_limits, self.tau_prev, self.xdot, self.u, self.tau)
+            if self.flags == _FLOW_FAILED:
+                return self._hold(q, dq, f"flow force not finite at x={arm.x.tolist()}")
+        else:
+            np.dot(arm.J[:3], dq, out=self.xdot)
+            try:
+                self.evaluator.force(arm.x, self.xdot, self.u)
+            except ValueError as exc:
+                return self._hold(q, dq, f"policy force failed: {exc}")
+            self.u += noise
+            self.flags = task_space_torque(
+                arm.J, arm.R, arm.g, dq, self.u, law.rotation_ref, law.k_rot, law.d_rot, law.joint_damping,
+                law.gravity_compensation, self.tau_prev, law.torque_limits, law.max_step, self.tau,
+            )
         if self.flags & NOT_FINITE:
             self.fault = "controller produced a non-finite torque"
         self.tau_prev[:] = self.tau
@@ -107,7 +151,7 @@ class FlowController:
         law = self.law
         ok = q.shape == (self.n,) and dq.shape == (self.n,) and _state_fault(q, dq, _Q_SANE) == 0
         if ok:
-            self._g_last[:] = pin.computeGeneralizedGravity(self.arm.model, self.arm.data, q)
+            self._g_last = pin.computeGeneralizedGravity(self.arm.model, self.arm.data, q).copy()
         self.flags = safe_hold_torque(
             self._g_last, dq if ok else self._dq_zero, law.hold_damping, law.gravity_compensation,
             self.tau_prev, law.torque_limits, law.max_step, self.tau,
