@@ -24,6 +24,7 @@ setup(
     entry_points={
         "console_scripts": [
             "flow_selfcheck = learner_node.selfcheck:main",
+            "train = learner_node.train_cli:main",
         ],
     },
 )

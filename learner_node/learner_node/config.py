@@ -1,0 +1,333 @@
+"""Training settings: one typed dataclass, loadable from a task's ROS 2 parameters YAML.
+
+Precedence: the dataclass defaults (with per-task paper defaults for the fields left ``None``)
+< the YAML file < command-line overrides. The YAML is the one file per task that every node
+reads (``config/<task>.yaml``, ROS 2 ``ros__parameters`` format): settings shared by all nodes
+sit under ``/**``, the learner's own under ``learner_node``. Keys under ``/**`` that are not
+training settings belong to other nodes and are skipped; unknown keys under ``learner_node``
+are errors (a typo must not pass silently).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from nf_controller_node.flow_spec import ACTIVATIONS
+
+TASKS = ("gear", "peg", "block")
+POLICIES = ("nf", "mlp")
+MLP_ACTIVATIONS = ("tanh", "gelu")
+BASELINES = ("linear", "value")
+ADV_NORMS = ("standardize", "center", "none")
+STARTS = ("random", "fixed")
+PLANES = ("vertical", "horizontal")
+PHYSICS_DT = 0.001  # s, the simulator's (and controller's) step
+
+# Paper settings per task (DESIGN section 2); used for the fields left at None.
+TASK_DEFAULTS: dict[str, dict[str, float | int]] = {
+    "gear": {"episode_seconds": 5.0, "sigma_init": 5.0, "n_flow": 1, "n_hidden": 16, "stiffness": 4.0, "damping": 1.0},
+    "peg": {"episode_seconds": 5.0, "sigma_init": 1.0, "n_flow": 2, "n_hidden": 16, "stiffness": 1.0, "damping": 1.0},
+    "block": {"episode_seconds": 4.0, "sigma_init": 2.0, "n_flow": 2, "n_hidden": 8, "stiffness": 1.0, "damping": 1.0},
+}
+
+YAML_SHARED = "/**"
+YAML_NODE = "learner_node"
+
+
+@dataclass
+class TrainConfig:
+    """All settings of one training run (NF-PPO or MLP-PPO on one task)."""
+
+    task: str = "gear"
+    """Task: gear (main), peg (peg-in-hole) or block (2-D block insertion, no arm)."""
+    policy: str = "nf"
+    """Policy parameterisation: nf (stable normalizing-flow controller) or mlp (plain Gaussian MLP)."""
+    sigma_init: float | None = None
+    """Initial std of the Gaussian action noise, N (None: paper value, gear 5, peg 1, block 2)."""
+    seed: int = 0
+    """Seed of the policy initialisation and of every random draw of the run."""
+    iterations: int = 100
+    """PPO iterations (each: rollouts_per_iter episodes, then one update)."""
+    rollouts_per_iter: int = 15
+    """Episodes collected per iteration."""
+    episode_seconds: float | None = None
+    """Episode length, s of simulated time (None: gear 5, peg 5, block 4)."""
+    decision_period: float = 0.01
+    """RL decision period, s: the policy noise is drawn once per period and held (multiple of 1 ms)."""
+    start: str = "random"
+    """Start states: random (joints ~ N(q_mean, 0.2 rad); block ~ N(mean, diag 50 mm, 100 mm)) or fixed."""
+    block_plane: str = "vertical"
+    """Block task only: vertical (gravity along the insertion, compensated) or horizontal."""
+    n_flow: int | None = None
+    """Flow elements (2 coupling layers each) (None: gear 1, peg 2, block 2)."""
+    n_hidden: int | None = None
+    """Hidden units of the flow's s/t networks (None: gear 16, peg 16, block 8)."""
+    activation: str = "gelu"
+    """Activation of the flow's s/t networks (gelu, tanh, softplus)."""
+    stiffness: float | None = None
+    """S = stiffness * I in the flow's latent space (None: gear 4, peg 1, block 1)."""
+    damping: float | None = None
+    """D = damping * I in the flow's latent space (None: 1 for all tasks)."""
+    mlp_hidden: int = 64
+    """MLP policy: units per hidden layer (two hidden layers)."""
+    mlp_activation: str = "tanh"
+    """MLP policy: hidden activation (tanh or gelu)."""
+    learning_rate: float = 2.5e-4
+    """Adam step size."""
+    update_epochs: int = 10
+    """Passes over the batch per PPO update."""
+    minibatch_size: int = 64
+    """Decisions per gradient step."""
+    clip_coef: float = 0.2
+    """PPO ratio clip epsilon."""
+    gamma: float = 0.99
+    """Discount per decision."""
+    gae_lambda: float = 0.97
+    """GAE lambda."""
+    adv_norm: str = "standardize"
+    """Advantage normalisation over the whole batch: standardize (centre, divide by std), center, none."""
+    baseline: str = "linear"
+    """Baseline: linear (least-squares features of observation and time, as the authors) or value (MLP)."""
+    vf_coef: float = 0.5
+    """Weight of the value loss (baseline=value only)."""
+    value_hidden: int = 64
+    """Units per hidden layer of the value network (baseline=value only)."""
+    max_grad_norm: float = 0.0
+    """Clip the gradient norm to this value (0: no clipping)."""
+    target_kl: float = 0.0
+    """Stop an update's epochs early once the epoch's mean approx_kl exceeds this (0: never)."""
+    reward_w: float = 1.0
+    """Reward weight w of the squared distance |d|^2 (d in m)."""
+    reward_v: float = 2.0
+    """Reward weight v of the log-distance term v ln((|d|^2 + a) / a)."""
+    reward_a: float = 1e-5
+    """Offset a of the log-distance term, m^2 (sets the scale where it saturates, ~3 mm)."""
+    reward_velocity: float = 0.1
+    """Reward weight of the squared TCP speed |xdot|^2 (m/s)."""
+    reward_action: float = 1e-3
+    """Reward weight of the squared action force |u|^2 (N)."""
+    eval_episodes: int = 10
+    """Final evaluation: episodes of the deterministic controller from held-out starts (1 if start=fixed)."""
+
+    def __post_init__(self) -> None:
+        self._coerce_types()
+        if self.task not in TASKS:
+            raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
+        for name, value in TASK_DEFAULTS[self.task].items():
+            if getattr(self, name) is None:
+                setattr(self, name, value)
+        self.validate()
+
+    # ------------------------------------------------------------------ validation
+    def _coerce_types(self) -> None:
+        """Check each value against its annotation; ints are accepted for float fields."""
+        hints = typing.get_type_hints(TrainConfig)
+        for f in fields(self):
+            setattr(self, f.name, _coerce(f.name, getattr(self, f.name), hints[f.name]))
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad setting and why."""
+        _choice("policy", self.policy, POLICIES)
+        _choice("start", self.start, STARTS)
+        _choice("block_plane", self.block_plane, PLANES)
+        _choice("activation", self.activation, ACTIVATIONS)
+        _choice("mlp_activation", self.mlp_activation, MLP_ACTIVATIONS)
+        _choice("baseline", self.baseline, BASELINES)
+        _choice("adv_norm", self.adv_norm, ADV_NORMS)
+        _positive("sigma_init", self.sigma_init)
+        _positive("episode_seconds", self.episode_seconds)
+        _positive("decision_period", self.decision_period)
+        _positive("stiffness", self.stiffness)
+        _positive("damping", self.damping)
+        _positive("learning_rate", self.learning_rate)
+        _positive("reward_a", self.reward_a)
+        for name in ("reward_w", "reward_v", "reward_velocity", "reward_action", "vf_coef", "max_grad_norm",
+                     "target_kl"):
+            _non_negative(name, getattr(self, name))
+        _int_range("seed", self.seed, 0, 2**32 - 1)
+        _int_range("iterations", self.iterations, 1, 1_000_000)
+        _int_range("rollouts_per_iter", self.rollouts_per_iter, 1, 100_000)
+        _int_range("n_flow", self.n_flow, 1, 64)
+        _int_range("n_hidden", self.n_hidden, 1, 1024)
+        _int_range("mlp_hidden", self.mlp_hidden, 1, 4096)
+        _int_range("value_hidden", self.value_hidden, 1, 4096)
+        _int_range("update_epochs", self.update_epochs, 1, 10_000)
+        _int_range("minibatch_size", self.minibatch_size, 1, 10_000_000)
+        _int_range("eval_episodes", self.eval_episodes, 0, 100_000)
+        if not 0.0 < self.clip_coef < 1.0:
+            raise ValueError(f"clip_coef must be in (0, 1), got {self.clip_coef}")
+        for name in ("gamma", "gae_lambda"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {value}")
+        steps = self.decision_period / PHYSICS_DT
+        if abs(steps - round(steps)) > 1e-9 * max(1.0, steps):
+            raise ValueError(
+                f"decision_period must be a whole multiple of the {PHYSICS_DT * 1e3:g} ms physics step, "
+                f"got {self.decision_period} s"
+            )
+        decisions = self.episode_seconds / self.decision_period
+        if self.episode_seconds < self.decision_period or abs(decisions - round(decisions)) > 1e-9 * decisions:
+            raise ValueError(
+                f"episode_seconds ({self.episode_seconds} s) must be a whole multiple of decision_period "
+                f"({self.decision_period} s)"
+            )
+
+    # ------------------------------------------------------------------ derived values
+    @property
+    def dim(self) -> int:
+        """Task-space dimension: 2 for the block (x, z), 3 for the arm tasks."""
+        return 2 if self.task == "block" else 3
+
+    @property
+    def steps_per_decision(self) -> int:
+        """Physics (1 ms) steps per decision period."""
+        return round(self.decision_period / PHYSICS_DT)
+
+    @property
+    def decisions_per_episode(self) -> int:
+        """Decisions per episode."""
+        return round(self.episode_seconds / self.decision_period)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict of all fields (resolved values)."""
+        return dataclasses.asdict(self)
+
+    def table(self) -> str:
+        """The settings as an aligned two-column text table, for the log at the start of a run."""
+        rows = [(f.name, repr(getattr(self, f.name))) for f in fields(self)]
+        width = max(len(n) for n, _ in rows)
+        line = f"+-{'-' * width}-+-{'-' * max(len(v) for _, v in rows)}-+"
+        vwidth = len(line) - width - 7
+        out = [line, f"| {'setting':<{width}} | {'value':<{vwidth}} |", line]
+        out += [f"| {n:<{width}} | {v:<{vwidth}} |" for n, v in rows]
+        out.append(line)
+        return "\n".join(out)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_sources(
+        cls, yaml_path: str | Path | None = None, overrides: dict[str, Any] | None = None
+    ) -> TrainConfig:
+        """Defaults < ``yaml_path`` (a task's parameters file) < ``overrides`` (values or strings)."""
+        values: dict[str, Any] = {}
+        if yaml_path is not None:
+            for key, value in read_yaml_params(yaml_path).items():
+                # YAML 1.1 reads 1e-5 (no dot) as a string: parse strings of numeric settings
+                values[key] = parse_value(key, value) if isinstance(value, str) else value
+        for key, value in (overrides or {}).items():
+            if key not in _FIELD_NAMES:
+                raise ValueError(f"unknown setting {key!r}; known settings: {', '.join(sorted(_FIELD_NAMES))}")
+            values[key] = parse_value(key, value) if isinstance(value, str) else value
+        return cls(**values)
+
+
+_FIELD_NAMES = frozenset(f.name for f in fields(TrainConfig))
+
+
+def read_yaml_params(path: str | Path) -> dict[str, Any]:
+    """Training settings from a ROS 2 parameters YAML: ``/**`` (shared, other keys skipped) then
+    ``learner_node`` (unknown keys are errors). Nested parameter groups are flattened with dots."""
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ValueError(f"cannot read config {path}: {exc}") from None
+    except yaml.YAMLError as exc:
+        raise ValueError(f"config {path} is not valid YAML: {exc}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"config {path}: expected a mapping of node names to ros__parameters")
+    out: dict[str, Any] = {}
+    for section, strict in ((YAML_SHARED, False), (YAML_NODE, True)):
+        if section not in doc:
+            continue
+        body = doc[section]
+        if not isinstance(body, dict) or not isinstance(body.get("ros__parameters"), dict):
+            raise ValueError(f"config {path}: section {section!r} needs a 'ros__parameters' mapping")
+        for key, value in _flatten(body["ros__parameters"]).items():
+            if key in _FIELD_NAMES:
+                out[key] = value
+            elif strict:
+                raise ValueError(f"config {path}: unknown learner_node parameter {key!r}")
+    return out
+
+
+def _flatten(params: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    flat: dict[str, Any] = {}
+    for key, value in params.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            flat.update(_flatten(value, name + "."))
+        else:
+            flat[name] = value
+    return flat
+
+
+def parse_value(name: str, text: str) -> Any:
+    """Parse a command-line string for setting ``name`` according to its type."""
+    hint = typing.get_type_hints(TrainConfig)[name]
+    if _allows_none(hint) and text.strip().lower() in ("none", "null", "~", ""):
+        return None
+    base = _base_type(hint)
+    try:
+        if base is int:
+            return int(text)
+        if base is float:
+            return float(text)
+    except ValueError:
+        raise ValueError(f"{name}: expected {base.__name__}, got {text!r}") from None
+    return text
+
+
+def _allows_none(hint: Any) -> bool:
+    return isinstance(hint, types.UnionType) and type(None) in typing.get_args(hint)
+
+
+def _base_type(hint: Any) -> type:
+    if isinstance(hint, types.UnionType):
+        return next(a for a in typing.get_args(hint) if a is not type(None))
+    return hint
+
+
+def _coerce(name: str, value: Any, hint: Any) -> Any:
+    if value is None and _allows_none(hint):
+        return None
+    base = _base_type(hint)
+    if base is float and isinstance(value, int | float) and not isinstance(value, bool):
+        value = float(value)
+        if not math.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {value}")
+        return value
+    if base is int and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if base is str and isinstance(value, str):
+        return value
+    raise ValueError(f"{name} must be {base.__name__}, got {value!r} ({type(value).__name__})")
+
+
+def _choice(name: str, value: str, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
+
+
+def _positive(name: str, value: float) -> None:
+    if not value > 0.0:
+        raise ValueError(f"{name} must be > 0, got {value}")
+
+
+def _non_negative(name: str, value: float) -> None:
+    if not value >= 0.0:
+        raise ValueError(f"{name} must be >= 0, got {value}")
+
+
+def _int_range(name: str, value: int, lo: int, hi: int) -> None:
+    if not lo <= value <= hi:
+        raise ValueError(f"{name} must be in [{lo}, {hi}], got {value}")

@@ -1,0 +1,76 @@
+"""``train``: NF-PPO (or MLP-PPO) in process on one task, with metrics, checkpoints and resume.
+
+Settings: defaults < ``--config`` (a task's ROS 2 parameters YAML) < the flags below < ``--set``.
+If ``OUT/checkpoint.pt`` exists the run resumes from it (raise ``--iterations`` to extend a run);
+``--fresh`` starts over instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from .config import TrainConfig, read_yaml_params
+from .trainer import CHECKPOINT, Trainer
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="train", description=__doc__.splitlines()[0])
+    ap.add_argument("--config", type=Path, help="ROS 2 parameters YAML of the task (e.g. config/gear.yaml)")
+    ap.add_argument("--task", choices=("gear", "peg", "block"))
+    ap.add_argument("--policy", choices=("nf", "mlp"))
+    ap.add_argument("--sigma-init", type=float, help="initial noise std, N")
+    ap.add_argument("--seed", type=int)
+    ap.add_argument("--iterations", type=int)
+    ap.add_argument("--out", type=Path, required=True, help="output directory (metrics, checkpoint, evaluation)")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                    help="any other TrainConfig setting, e.g. --set rollouts_per_iter=8 (repeatable)")
+    ap.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint in --out and start over")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ap.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
+    ap.add_argument("-v", "--verbose", action="store_true", help="log every iteration's metrics")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit code (0 ok, 2 bad settings)."""
+    ap = _parser()
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(message)s")
+    overrides: dict[str, object] = {}
+    for flag, key in (("task", "task"), ("policy", "policy"), ("sigma_init", "sigma_init"), ("seed", "seed"),
+                      ("iterations", "iterations")):
+        value = getattr(args, flag)
+        if value is not None:
+            overrides[key] = value
+    for item in args.sets:
+        key, sep, value = item.partition("=")
+        if not sep:
+            ap.error(f"--set expects KEY=VALUE, got {item!r}")
+        overrides[key.strip()] = value.strip()
+    try:
+        if args.config is not None and "task" in overrides:
+            yaml_task = read_yaml_params(args.config).get("task")
+            if yaml_task not in (None, overrides["task"]):
+                logging.warning("--task %s overrides task %s of %s: its task-specific values still apply",
+                                overrides["task"], yaml_task, args.config)
+        cfg = TrainConfig.from_sources(args.config, overrides)
+        trainer = Trainer(cfg, args.out, progress=not args.no_progress)
+        ckpt = args.out / CHECKPOINT
+        if ckpt.exists() and not args.fresh:
+            try:
+                trainer.load_checkpoint(ckpt)
+            except ValueError as exc:
+                raise ValueError(f"cannot resume from {ckpt}: {exc}; use --fresh or another --out") from None
+            logging.info("resuming from %s after iteration %d", ckpt, trainer.iteration)
+    except ValueError as exc:
+        print(f"train: error: {exc}", file=sys.stderr)
+        return 2
+    trainer.run(evaluate=not args.no_eval)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

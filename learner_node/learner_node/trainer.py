@@ -1,0 +1,303 @@
+"""In-process PPO training of the NF (or MLP) policy: rollouts, advantages, update, metrics, checkpoints.
+
+One iteration: ``rollouts_per_iter`` episodes with the current stochastic policy (compiled
+evaluator in the 1 kHz loop), GAE with the baseline, one PPO update (torch), a metrics row and a
+checkpoint. All randomness after the policy initialisation comes from one numpy Generator seeded
+once with ``cfg.seed`` (training start seeds, noise seeds, minibatch order); its state is in the
+checkpoint, so a restarted run continues exactly as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from nf_controller_node.flow_eval import FlowEvaluator
+from nf_controller_node.flow_spec import FlowArchitecture
+
+from .config import TrainConfig
+from .mlp_policy import MLPEvaluator, MLPPolicy
+from .policy import NFPolicy
+from .ppo import (
+    LinearFeatureBaseline,
+    PPOBatch,
+    PPOSettings,
+    ValueNetwork,
+    compute_gae,
+    discounted_returns,
+    normalize_advantages,
+    ppo_update,
+)
+from .rollout import REWARD_TERMS, EpisodeRecord, RolloutRunner
+
+LOG = logging.getLogger("learner_node.trainer")
+CHECKPOINT = "checkpoint.pt"
+CHECKPOINT_FORMAT = 1
+EVAL_SEED_BASE = 1_000_000_000  # held-out evaluation starts: seeds >= this; training seeds are below
+# settings that may differ between a checkpoint and the run that resumes it
+RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes"})
+TIMING_KEYS = ("rollout_seconds", "update_seconds", "wall_seconds")
+
+
+def build_policy(cfg: TrainConfig, x_ref: np.ndarray) -> NFPolicy | MLPPolicy:
+    """The policy of ``cfg`` (initialised from ``cfg.seed``) with goal ``x_ref``."""
+    d = cfg.dim
+    if cfg.policy == "nf":
+        arch = FlowArchitecture(dim=d, n_flow=cfg.n_flow, n_hidden=cfg.n_hidden, activation=cfg.activation)
+        return NFPolicy(arch, stiffness=cfg.stiffness * np.eye(d), damping=cfg.damping * np.eye(d),
+                        x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed)
+    return MLPPolicy(d, cfg.mlp_hidden, cfg.mlp_activation, x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed)
+
+
+def make_evaluator(policy: NFPolicy | MLPPolicy) -> FlowEvaluator | MLPEvaluator:
+    """Compiled float64 snapshot of the policy's mean force, for the 1 kHz loop."""
+    if isinstance(policy, NFPolicy):
+        return FlowEvaluator(policy.to_params())
+    return MLPEvaluator.from_policy(policy)
+
+
+def policy_sigma(policy: NFPolicy | MLPPolicy) -> np.ndarray:
+    """Noise std per action dimension, float64 (d,)."""
+    with torch.no_grad():
+        std = policy.std().to(torch.float64).cpu().numpy()
+    return np.broadcast_to(std, (policy.x_ref.shape[0],)).copy()
+
+
+def episode_summary(episodes: list[EpisodeRecord]) -> dict[str, float]:
+    """Means (and some stds) over episodes: return, success, final distance, torque, depth, reward terms."""
+    returns = np.array([e.episode_return for e in episodes])
+    dist = np.array([e.final_distance for e in episodes])
+    out = {
+        "return_mean": float(returns.mean()),
+        "return_std": float(returns.std()),
+        "success_rate": float(np.mean([e.final_success for e in episodes])),
+        "final_distance_mean": float(dist.mean()),
+        "final_distance_std": float(dist.std()),
+        "torque_norm_mean": float(np.mean([e.torque_norm for e in episodes])),
+        "max_depth_mean": float(np.mean([e.depth.max() for e in episodes])),
+        "faults": float(sum(e.faults for e in episodes)),
+    }
+    for name in REWARD_TERMS:
+        out[f"term_{name}"] = float(np.mean([e.terms[name].sum() for e in episodes]))
+    return out
+
+
+class Trainer:
+    """NF-PPO / MLP-PPO on one task, in process. ``run()`` trains to ``cfg.iterations`` and evaluates."""
+
+    def __init__(self, cfg: TrainConfig, out_dir: str | Path | None = None, progress: bool = False) -> None:
+        torch.set_num_threads(1)  # small tensors; extra threads only spin on the shared machines
+        self.cfg = cfg
+        self.out_dir = Path(out_dir) if out_dir is not None else None
+        self.progress = progress
+        self.runner = RolloutRunner(cfg)
+        self.x_ref = self.runner.x_ref
+        self.policy = build_policy(cfg, self.x_ref)
+        params = list(self.policy.parameters())
+        self.baseline = LinearFeatureBaseline()
+        self.value_net: ValueNetwork | None = None
+        if cfg.baseline == "value":
+            self.value_net = ValueNetwork(2 * cfg.dim, cfg.value_hidden, seed=cfg.seed)
+            params += list(self.value_net.parameters())
+        self.optimizer = torch.optim.Adam(params, lr=cfg.learning_rate)
+        self.settings = PPOSettings(cfg.update_epochs, cfg.minibatch_size, cfg.clip_coef, cfg.vf_coef,
+                                    cfg.max_grad_norm, cfg.target_kl)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.iteration = 0  # completed iterations
+        self.history: list[dict[str, float]] = []
+
+    # ------------------------------------------------------------------ one iteration
+    def collect(self) -> list[EpisodeRecord]:
+        """``rollouts_per_iter`` episodes of the current stochastic policy."""
+        evaluator = make_evaluator(self.policy)
+        sigma = policy_sigma(self.policy)
+        seeds = self.rng.integers(0, EVAL_SEED_BASE, size=(self.cfg.rollouts_per_iter, 2))
+        return [
+            self.runner.run_episode(evaluator, sigma, int(start), np.random.default_rng(int(noise)))
+            for start, noise in seeds
+        ]
+
+    def make_batch(self, episodes: list[EpisodeRecord]) -> PPOBatch:
+        """Advantages from GAE with the baseline (predicted, then refitted on this batch), as tensors."""
+        cfg = self.cfg
+        cat = np.concatenate
+        x, xdot = cat([e.x for e in episodes]), cat([e.xdot for e in episodes])
+        t = cat([e.t for e in episodes])
+        rewards = cat([e.reward for e in episodes])
+        dones = cat([np.arange(len(e.reward)) == len(e.reward) - 1 for e in episodes])
+        obs = np.concatenate([x - self.x_ref, xdot], axis=1)
+        mc_returns = discounted_returns(rewards, dones, cfg.gamma)
+        value_input = None
+        if self.value_net is None:
+            values = self.baseline.predict(obs, t)
+            adv, returns = compute_gae(rewards, values, dones, cfg.gamma, cfg.gae_lambda)
+            self.baseline.fit(obs, t, mc_returns)  # rllab order: this batch's fit serves the next one
+        else:
+            value_input = torch.from_numpy(np.concatenate([obs, (t / cfg.episode_seconds)[:, None]], axis=1))
+            self.value_net.set_scale_once(mc_returns)
+            with torch.no_grad():
+                values = self.value_net(value_input).numpy()
+            adv, returns = compute_gae(rewards, values, dones, cfg.gamma, cfg.gae_lambda)
+        adv = normalize_advantages(adv, cfg.adv_norm)
+        as_t = torch.from_numpy
+        return PPOBatch(
+            x=as_t(x), xdot=as_t(xdot), action=as_t(cat([e.action for e in episodes])),
+            old_log_prob=as_t(cat([e.log_prob for e in episodes])), advantages=as_t(adv),
+            returns=as_t(returns), value_input=value_input,
+        )
+
+    def train_iteration(self) -> dict[str, float]:
+        """Collect, update, record one metrics row (returned and appended to ``history``)."""
+        t0 = time.perf_counter()
+        episodes = self.collect()
+        t1 = time.perf_counter()
+        batch = self.make_batch(episodes)
+        stats = ppo_update(self.policy, self.optimizer, batch, self.settings, self.rng, self.value_net)
+        t2 = time.perf_counter()
+        self.iteration += 1
+        row: dict[str, float] = {"iteration": float(self.iteration)}
+        row.update(episode_summary(episodes))
+        row["sigma"] = float(policy_sigma(self.policy).mean())
+        row.update(stats)
+        row["decisions"] = float(len(batch))
+        row["rollout_seconds"] = t1 - t0
+        row["update_seconds"] = t2 - t1
+        row["wall_seconds"] = t2 - t0
+        self.history.append(row)
+        return row
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self, episodes: int | None = None) -> dict[str, Any]:
+        """The deterministic controller (no noise) from held-out start seeds (one episode if starts are fixed)."""
+        n = self.cfg.eval_episodes if episodes is None else episodes
+        if self.cfg.start == "fixed":
+            n = min(n, 1)
+        evaluator = make_evaluator(self.policy)
+        recs = [self.runner.run_episode(evaluator, None, EVAL_SEED_BASE + k, None) for k in range(n)]
+        if not recs:
+            return {"episodes": 0}
+        out: dict[str, Any] = {"episodes": n, "iteration": self.iteration}
+        out.update(episode_summary(recs))
+        out["per_episode"] = [
+            {"start_seed": r.start_seed, "return": r.episode_return, "success": r.final_success,
+             "final_distance": r.final_distance, "max_depth": float(r.depth.max()), "torque_norm": r.torque_norm}
+            for r in recs
+        ]
+        return out
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue exactly: policy, optimiser, baseline, RNG states, iteration, history."""
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "config": self.cfg.to_dict(),
+            "iteration": self.iteration,
+            "policy": self.policy.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "baseline": self.baseline.state_dict(),
+            "value_net": None if self.value_net is None else self.value_net.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),
+            "history": self.history,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore from ``state_dict`` (the config must match except ``RESUMABLE_CHANGES``)."""
+        if state.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(f"checkpoint format {state.get('format')!r}, expected {CHECKPOINT_FORMAT}")
+        mine, theirs = self.cfg.to_dict(), state["config"]
+        diff = sorted(k for k in mine if k not in RESUMABLE_CHANGES and mine[k] != theirs.get(k))
+        if diff:
+            detail = ", ".join(f"{k}: checkpoint {theirs.get(k)!r} vs now {mine[k]!r}" for k in diff)
+            raise ValueError(f"checkpoint was written with different settings ({detail})")
+        self.policy.load_state_dict(state["policy"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.baseline.load_state_dict(state["baseline"])
+        if self.value_net is not None:
+            self.value_net.load_state_dict(state["value_net"])
+        self.rng.bit_generator.state = state["rng"]
+        torch.set_rng_state(state["torch_rng"])
+        self.iteration = int(state["iteration"])
+        self.history = [dict(r) for r in state["history"]]
+
+    def save_checkpoint(self, path: str | Path) -> None:
+        """Write the checkpoint atomically (temporary file, then rename)."""
+        path = Path(path)
+        tmp = path.with_suffix(path.suffix + ".tmp")
+        torch.save(self.state_dict(), tmp)
+        os.replace(tmp, path)
+
+    def load_checkpoint(self, path: str | Path) -> None:
+        """Resume from a checkpoint file."""
+        self.load_state_dict(torch.load(Path(path), weights_only=True))
+
+    # ------------------------------------------------------------------ the run
+    def write_metrics(self) -> None:
+        """``metrics.csv`` and ``metrics.json`` in the output directory (rewritten from the history)."""
+        if self.out_dir is None or not self.history:
+            return
+        keys = list(self.history[0])
+        _atomic_write(self.out_dir / "metrics.json", json.dumps(self.history, indent=1, default=_json_float))
+        tmp = self.out_dir / "metrics.csv.tmp"
+        with tmp.open("w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=keys)
+            writer.writeheader()
+            writer.writerows(self.history)
+        os.replace(tmp, self.out_dir / "metrics.csv")
+
+    def run(self, evaluate: bool = True) -> dict[str, Any] | None:
+        """Train until ``cfg.iterations`` (metrics and a checkpoint after every iteration), then evaluate."""
+        if self.out_dir is not None:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            _atomic_write(self.out_dir / "config.json", json.dumps(self.cfg.to_dict(), indent=1))
+        LOG.info("training %s-PPO on %s, iterations %d..%d\n%s", self.cfg.policy, self.cfg.task,
+                 self.iteration + 1, self.cfg.iterations, self.cfg.table())
+        bar = tqdm(total=self.cfg.iterations, initial=self.iteration, disable=not self.progress,
+                   desc=f"{self.cfg.policy}/{self.cfg.task}", unit="it")
+        try:
+            while self.iteration < self.cfg.iterations:
+                row = self.train_iteration()
+                if self.out_dir is not None:
+                    self.write_metrics()
+                    self.save_checkpoint(self.out_dir / CHECKPOINT)
+                bar.update(1)
+                bar.set_postfix(ret=f"{row['return_mean']:.0f}", succ=f"{row['success_rate']:.2f}",
+                                dist=f"{row['final_distance_mean']:.3f}", kl=f"{row['approx_kl']:.1e}")
+                LOG.debug("iteration %d: %s", self.iteration, row)
+        finally:
+            bar.close()
+        if not evaluate or self.cfg.eval_episodes == 0:
+            return None
+        result = self.evaluate()
+        LOG.info("evaluation (deterministic, %d held-out starts): success %.2f, return %.1f, final distance %.4f m",
+                 result["episodes"], result["success_rate"], result["return_mean"], result["final_distance_mean"])
+        if self.out_dir is not None:
+            _atomic_write(self.out_dir / "evaluation.json", json.dumps(result, indent=1, default=_json_float))
+        return result
+
+
+def _json_float(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def metrics_without_timing(row: dict[str, float]) -> dict[str, float]:
+    """A metrics row without the wall-clock entries (what must repeat exactly across runs)."""
+    return {k: v for k, v in row.items() if k not in TIMING_KEYS and not (isinstance(v, float) and math.isnan(v))}

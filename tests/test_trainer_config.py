@@ -1,0 +1,100 @@
+"""TrainConfig: task defaults, clear errors for bad values, the per-task YAML files, overrides."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from learner_node.config import TrainConfig, parse_value, read_yaml_params
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
+
+
+def test_task_defaults_follow_the_paper():
+    gear = TrainConfig(task="gear")
+    assert (gear.n_flow, gear.n_hidden, gear.sigma_init, gear.stiffness, gear.damping) == (1, 16, 5.0, 4.0, 1.0)
+    assert gear.dim == 3 and gear.episode_seconds == 5.0
+    block = TrainConfig(task="block")
+    assert (block.n_flow, block.n_hidden, block.sigma_init, block.dim) == (2, 8, 2.0, 2)
+    assert block.steps_per_decision == 10 and block.decisions_per_episode == 400
+    assert TrainConfig(task="peg", sigma_init=3.0).sigma_init == 3.0  # explicit values win
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"task": "car"}, "task must be one of"),
+        ({"policy": "lstm"}, "policy must be one of"),
+        ({"sigma_init": -1.0}, "sigma_init must be > 0"),
+        ({"sigma_init": "abc"}, "sigma_init must be float"),
+        ({"iterations": True}, "iterations must be int"),
+        ({"iterations": 0}, "iterations must be in"),
+        ({"rollouts_per_iter": 0}, "rollouts_per_iter must be in"),
+        ({"seed": -1}, "seed must be in"),
+        ({"decision_period": 0.0015}, "whole multiple of the 1 ms physics step"),
+        ({"decision_period": 0.0}, "decision_period must be > 0"),
+        ({"episode_seconds": 1.005}, "whole multiple of decision_period"),
+        ({"episode_seconds": float("inf")}, "must be finite"),
+        ({"clip_coef": 1.5}, "clip_coef must be in"),
+        ({"gamma": 1.2}, "gamma must be in"),
+        ({"gae_lambda": -0.1}, "gae_lambda must be in"),
+        ({"learning_rate": 0.0}, "learning_rate must be > 0"),
+        ({"minibatch_size": 0}, "minibatch_size must be in"),
+        ({"n_flow": 0}, "n_flow must be in"),
+        ({"activation": "relu"}, "activation must be one of"),
+        ({"baseline": "critic"}, "baseline must be one of"),
+        ({"adv_norm": "whiten"}, "adv_norm must be one of"),
+        ({"reward_a": 0.0}, "reward_a must be > 0"),
+        ({"reward_velocity": -0.1}, "reward_velocity must be >= 0"),
+        ({"start": "sometimes"}, "start must be one of"),
+        ({"stiffness": 0.0}, "stiffness must be > 0"),
+    ],
+)
+def test_bad_values_give_clear_errors(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        TrainConfig(**overrides)
+
+
+@pytest.mark.parametrize("task", ["gear", "peg", "block"])
+def test_task_yaml_files_load(task):
+    cfg = TrainConfig.from_sources(CONFIG_DIR / f"{task}.yaml")
+    assert cfg.task == task
+    assert cfg == TrainConfig(task=task)  # the files hold the defaults
+
+
+def test_yaml_sections_and_precedence(tmp_path):
+    path = tmp_path / "p.yaml"
+    path.write_text(
+        "/**:\n  ros__parameters:\n    task: block\n    sigma_init: 3.0\n    some_sim_setting: 7\n"
+        "learner_node:\n  ros__parameters:\n    sigma_init: 4.0\n    learning_rate: 1e-3\n"
+    )
+    assert read_yaml_params(path) == {"task": "block", "sigma_init": 4.0, "learning_rate": "1e-3"}
+    cfg = TrainConfig.from_sources(path, {"seed": "5", "iterations": 3})
+    assert (cfg.task, cfg.sigma_init, cfg.learning_rate, cfg.seed, cfg.iterations) == ("block", 4.0, 1e-3, 5, 3)
+    assert TrainConfig.from_sources(path, {"sigma_init": "0.5"}).sigma_init == 0.5  # CLI beats YAML
+
+
+def test_yaml_errors_are_clear(tmp_path):
+    bad_key = tmp_path / "k.yaml"
+    bad_key.write_text("learner_node:\n  ros__parameters:\n    learning_rat: 0.1\n")
+    with pytest.raises(ValueError, match="unknown learner_node parameter 'learning_rat'"):
+        read_yaml_params(bad_key)
+    no_params = tmp_path / "n.yaml"
+    no_params.write_text("learner_node:\n  seed: 1\n")
+    with pytest.raises(ValueError, match="ros__parameters"):
+        read_yaml_params(no_params)
+    with pytest.raises(ValueError, match="cannot read config"):
+        read_yaml_params(tmp_path / "missing.yaml")
+    with pytest.raises(ValueError, match="unknown setting 'sigma'"):
+        TrainConfig.from_sources(None, {"sigma": "1"})
+    with pytest.raises(ValueError, match="seed: expected int"):
+        parse_value("seed", "1.5")
+
+
+def test_none_resets_to_task_default_and_table_lists_every_field():
+    cfg = TrainConfig.from_sources(None, {"task": "peg", "sigma_init": "none"})
+    assert cfg.sigma_init == 1.0
+    table = cfg.table()
+    for name in cfg.to_dict():
+        assert f"| {name} " in table
