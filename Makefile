@@ -2,7 +2,7 @@
 SHELL := /bin/bash
 ENV := source ./env.sh
 
-.PHONY: setup test lint bench clean
+.PHONY: setup test lint bench run clean
 
 setup:  ## create .venv, install pinned packages, build ros2_ws, write env.sh (idempotent)
 	@scripts/setup.sh
@@ -15,6 +15,10 @@ test: setup  ## set up if needed, then lint and the full test suite
 
 bench: setup  ## speed benchmarks; JSON results in bench/results/
 	@$(ENV) && python bench/run_all.py
+
+run:  ## the main job (whole stack learning the gear in simulation): not implemented yet
+	@echo "make run: not implemented yet. It arrives with the ROS node stack; today see README 'Working on the code'." >&2
+	@exit 2
 
 clean:  ## remove build products (keeps .venv)
 	rm -rf ros2_ws/build ros2_ws/install ros2_ws/log ros2_ws/.build.sha256 env.sh
