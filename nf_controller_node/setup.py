@@ -24,6 +24,7 @@ setup(
     entry_points={
         "console_scripts": [
             "controller_bench = nf_controller_node.bench:main",
+            "nf_controller = nf_controller_node.node:main",
         ],
     },
 )

@@ -24,6 +24,7 @@ setup(
     entry_points={
         "console_scripts": [
             "render_scene = sim_bridge_node.render:main",
+            "sim_bridge = sim_bridge_node.node:main",
         ],
     },
 )

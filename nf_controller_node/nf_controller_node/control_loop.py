@@ -1,0 +1,306 @@
+"""ROS-free core of ``nf_controller_node``: joint state in, joint torque out, with every check the
+node needs (joint names, sizes, stamp order, stale state, deadline misses, policy swaps).
+
+``ControlLoop.on_joint_state`` runs once per joint state and always returns a finite torque
+(the flow controller, or the safe hold on any problem). Faults latch in the
+``FlowController`` until ``clear_fault``; ``mode`` and ``fault`` say what is being commanded.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .arm_model import ArmModel
+from .controller import FlowController
+from .flow_eval import FlowEvaluator
+from .flow_spec import FlowArchitecture
+from .lyapunov import LyapunovMonitor
+from .panda_spec import JOINT_NAMES, Q_MAX, Q_MIN
+from .policy_params import PolicyParameterError, PolicyParameters
+from .torque_law import TorqueLawConfig
+
+# ControllerStatus modes (same numbers as nf_msgs/msg/ControllerStatus).
+MODE_IDLE, MODE_RUNNING, MODE_SAFE_HOLD, MODE_RESETTING = 0, 1, 2, 3
+NO_POLICY = "waiting for policy parameters"
+
+
+class JointStateError(ValueError):
+    """A joint state message that cannot be used (names, sizes)."""
+
+
+class JointMap:
+    """Maps a JointState's name order onto the controller's joint order (cached per name list)."""
+
+    def __init__(self, joint_names: Sequence[str] = JOINT_NAMES) -> None:
+        self.joint_names = tuple(joint_names)
+        self._names: list[str] | None = None
+        self._index = np.arange(len(self.joint_names))
+
+    def _build(self, names: list[str]) -> np.ndarray:
+        known = set(self.joint_names)
+        unknown = [n for n in names if n not in known]
+        if unknown:
+            raise JointStateError(f"unknown joint name(s) {unknown}; expected {list(self.joint_names)}")
+        if len(set(names)) != len(names):
+            raise JointStateError(f"duplicate joint names in {names}")
+        missing = [n for n in self.joint_names if n not in names]
+        if missing:
+            raise JointStateError(f"missing joint(s) {missing}")
+        return np.array([names.index(n) for n in self.joint_names])
+
+    def map(self, names: Sequence[str], position: Sequence[float], velocity: Sequence[float]
+            ) -> tuple[np.ndarray, np.ndarray]:
+        """(q, dq) in controller order; ``JointStateError`` for unknown/missing names or wrong sizes."""
+        names = list(names)
+        if names != self._names:
+            self._index = self._build(names)
+            self._names = names
+        n = len(names)
+        if len(position) != n or len(velocity) != n:
+            raise JointStateError(f"{n} names but {len(position)} positions and {len(velocity)} velocities")
+        q = np.asarray(position, dtype=np.float64)[self._index]
+        dq = np.asarray(velocity, dtype=np.float64)[self._index]
+        return q, dq
+
+
+class LatencyStats:
+    """Loop latencies (s) since the last ``report``: percentiles and count."""
+
+    def __init__(self, capacity: int = 16384) -> None:
+        self._buf = np.zeros(capacity)
+        self._n = 0
+        self.total = 0
+
+    def add(self, seconds: float) -> None:
+        """Record one latency (the oldest entries of a full window are overwritten)."""
+        self._buf[self._n % self._buf.size] = seconds
+        self._n += 1
+        self.total += 1
+
+    def report(self) -> dict[str, float]:
+        """p50/p90/p99/max in microseconds and the count since the last report; starts a new window."""
+        n = min(self._n, self._buf.size)
+        count = self._n
+        self._n = 0
+        if n == 0:
+            return {"count": 0, "p50_us": 0.0, "p90_us": 0.0, "p99_us": 0.0, "max_us": 0.0}
+        p50, p90, p99 = np.percentile(self._buf[:n], [50, 90, 99]) * 1e6
+        return {"count": count, "p50_us": float(p50), "p90_us": float(p90), "p99_us": float(p99),
+                "max_us": float(self._buf[:n].max() * 1e6)}
+
+
+class _NoPolicy:
+    """Stand-in evaluator before the first policy arrives: any use of it holds the arm."""
+
+    def force(self, x: np.ndarray, xdot: np.ndarray, out: np.ndarray) -> None:
+        raise ValueError(NO_POLICY)
+
+    def potential(self, x: np.ndarray) -> float:
+        return float("nan")
+
+
+@dataclass
+class LoopConfig:
+    """Settings of the control loop. Units: s."""
+
+    deadline: float = 0.001  # a step taking longer than this is a deadline miss
+    max_consecutive_misses: int = 20  # this many misses in a row latch the safe hold (0: never)
+    state_timeout: float = 0.0  # realtime use: no joint state for this long latches the safe hold (0: off)
+
+    def check(self) -> None:
+        """Raise ``ValueError`` naming the first bad value."""
+        if not self.deadline > 0.0:
+            raise ValueError(f"deadline must be > 0 s, got {self.deadline}")
+        if self.max_consecutive_misses < 0:
+            raise ValueError(f"max_consecutive_misses must be >= 0, got {self.max_consecutive_misses}")
+        if not self.state_timeout >= 0.0:
+            raise ValueError(f"state_timeout must be >= 0 s, got {self.state_timeout}")
+
+
+class ControlLoop:
+    """Joint states to torques through a ``FlowController``; owns the policy and the fault counters."""
+
+    def __init__(self, arm: ArmModel, law: TorqueLawConfig | None = None, config: LoopConfig | None = None,
+                 joint_names: Sequence[str] = JOINT_NAMES) -> None:
+        self.config = config or LoopConfig()
+        self.config.check()
+        self.joints = JointMap(joint_names)
+        self.controller = FlowController(arm, _NoPolicy(), law)  # type: ignore[arg-type]
+        self.policy: PolicyParameters | None = None
+        self._pending: tuple[PolicyParameters, FlowEvaluator] | None = None
+        self.episode_active = False
+        self.latency = LatencyStats()
+        self.monitor = LyapunovMonitor(dt=0.02, tolerance=1e-3, time_constant=0.1)
+        self.n = arm.nq
+        self.q = np.zeros(self.n)  # last valid joint state (rad, rad/s)
+        self.dq = np.zeros(self.n)
+        self.have_state = False
+        self.last_state_time = -np.inf  # wall time (s) of the last joint state
+        self._last_stamp = -1  # ns
+        self.steps = 0
+        self.bad_inputs = 0
+        self.faults = 0  # times a fault latched
+        self.deadline_misses = 0
+        self._consecutive_misses = 0
+        self.policy_rejections = 0
+        self._nan = np.full(self.n, np.nan)
+        self._warm_up(arm)
+
+    def _warm_up(self, arm: ArmModel) -> None:
+        """Load the compiled kernels now (about 0.3 s), so the first policy swap and the first
+        flow step cost a millisecond instead of stalling a running loop."""
+        arch = FlowArchitecture(dim=3, n_flow=1, n_hidden=4, activation="gelu")
+        params = PolicyParameters(arch, np.zeros(arch.n_params), np.zeros(1), np.eye(3), np.eye(3), np.zeros(3))
+        scratch = FlowController(arm, FlowEvaluator.from_params(params), self.controller.law)
+        q = 0.5 * (Q_MIN + Q_MAX)
+        scratch.step(q, np.zeros(self.n))
+        scratch.lyapunov(q, np.zeros(self.n))
+
+    # ------------------------------------------------------------------ status
+    @property
+    def fault(self) -> str:
+        """Why the loop holds the arm ("" when it runs the flow controller)."""
+        if self.controller.fault:
+            return self.controller.fault
+        return NO_POLICY if self.policy is None else ""
+
+    @property
+    def mode(self) -> int:
+        """MODE_SAFE_HOLD, MODE_RUNNING or MODE_IDLE."""
+        if self.fault:
+            return MODE_SAFE_HOLD
+        return MODE_RUNNING if self.episode_active else MODE_IDLE
+
+    @property
+    def policy_version(self) -> int:
+        """Version of the policy in use (0 before any)."""
+        return self.policy.version if self.policy is not None else 0
+
+    def _latch(self, reason: str) -> bool:
+        """Latch a fault; True if this is a new one (the caller logs it)."""
+        if self.controller.fault:
+            return False
+        self.controller.fault = reason
+        self.faults += 1
+        return True
+
+    def clear_fault(self) -> str:
+        """Re-arm after a fault; returns the fault that was cleared."""
+        old = self.controller.fault
+        self.controller.clear_fault()
+        self._consecutive_misses = 0
+        return old
+
+    # ------------------------------------------------------------------ policy
+    def set_policy(self, params: PolicyParameters) -> bool:
+        """Validate and install new parameters: now (True) or, during an episode, at its end (False).
+
+        Raises ``PolicyParameterError`` when they do not fit this arm.
+        """
+        if params.arch.dim != 3:
+            raise PolicyParameterError(f"the arm needs a 3-D flow, got dim={params.arch.dim}")
+        try:
+            evaluator = FlowEvaluator.from_params(params)
+        except ValueError as exc:
+            raise PolicyParameterError(f"flow evaluator: {exc}") from None
+        if self.episode_active:
+            self._pending = (params, evaluator)
+            return False
+        self._install(params, evaluator)
+        return True
+
+    def _install(self, params: PolicyParameters, evaluator: FlowEvaluator) -> None:
+        self.controller.set_evaluator(evaluator)
+        self.policy = params
+        self._pending = None
+        self.monitor.reset()
+
+    def end_episode(self) -> None:
+        """Mark the episode over and install parameters that arrived during it."""
+        self.episode_active = False
+        if self._pending is not None:
+            self._install(*self._pending)
+
+    # ------------------------------------------------------------------ the 1 kHz step
+    def on_joint_state(self, names: Sequence[str], position: Sequence[float], velocity: Sequence[float],
+                       stamp_ns: int, now: float) -> tuple[np.ndarray, str]:
+        """Torque (Nm, controller joint order) for one joint state received at wall time ``now`` (s).
+
+        Returns (torque, new_fault): ``new_fault`` is the reason when this state latched a fault.
+        The torque is an internal buffer: publish or copy it before the next call.
+        """
+        self.steps += 1
+        self.last_state_time = now
+        ctrl = self.controller
+        try:
+            q, dq = self.joints.map(names, position, velocity)
+        except JointStateError as exc:
+            self.bad_inputs += 1
+            reason = f"bad joint state: {exc}"
+            return self._hold_last(), reason if self._latch(reason) else ""
+        if stamp_ns < self._last_stamp:
+            self.bad_inputs += 1
+            reason = f"joint state out of order: stamp {stamp_ns} ns is older than the previous {self._last_stamp} ns"
+            return self._hold_last(), reason if self._latch(reason) else ""
+        self._last_stamp = stamp_ns
+        bad_q, bad_dq = ~np.isfinite(q), ~np.isfinite(dq)
+        if bad_q.any() or bad_dq.any():
+            self.bad_inputs += 1
+            which = [self.joints.joint_names[i] for i in np.flatnonzero(bad_q | bad_dq)]
+            reason = f"joint state not finite (NaN/Inf) for {which}"
+            return self._hold_last(), reason if self._latch(reason) else ""
+        had_fault = ctrl.fault
+        tau = ctrl.hold(q, dq) if self.policy is None else ctrl.step(q, dq)
+        new = ""
+        if ctrl.fault and not had_fault:  # the controller latched (q out of range, flow not finite, ...)
+            self.faults += 1
+            new = ctrl.fault
+        self.q[:], self.dq[:] = q, dq
+        self.have_state = True
+        return tau, new
+
+    def _hold_last(self) -> np.ndarray:
+        """Safe hold when the message itself is unusable: gravity of the last valid state, no damping."""
+        return self.controller.hold(self._nan, self._nan)
+
+    def on_timer(self, now: float) -> tuple[np.ndarray | None, str]:
+        """Stale-state watchdog (realtime use): (hold torque to publish or None, new fault reason)."""
+        timeout = self.config.state_timeout
+        if timeout <= 0.0 or not self.have_state or now - self.last_state_time <= timeout:
+            return None, ""
+        age = now - self.last_state_time
+        reason = f"joint state stale: none for {age * 1e3:.1f} ms (timeout {timeout * 1e3:.1f} ms)"
+        new = reason if self._latch(reason) else ""
+        return self.controller.hold(self.q, np.zeros(self.n)), new
+
+    def record_latency(self, seconds: float) -> str:
+        """Account one step's latency; returns a fault reason when a run of misses latched the hold."""
+        self.latency.add(seconds)
+        if seconds <= self.config.deadline:
+            self._consecutive_misses = 0
+            return ""
+        self.deadline_misses += 1
+        self._consecutive_misses += 1
+        limit = self.config.max_consecutive_misses
+        if limit and self._consecutive_misses >= limit:
+            reason = f"{self._consecutive_misses} consecutive deadline misses (> {self.config.deadline * 1e3:.2f} ms)"
+            if self._latch(reason):
+                return reason
+        return ""
+
+    # ------------------------------------------------------------------ energy
+    def lyapunov(self) -> tuple[float, float]:
+        """(V in J, filtered dV/dt in W) at the last valid state; NaN without a policy or state.
+
+        Call at the monitor's rate (every 20 ms).
+        """
+        if self.policy is None or not self.have_state:
+            return float("nan"), float("nan")
+        try:
+            value = float(self.controller.lyapunov(self.q, self.dq))
+        except ValueError:
+            value = float("nan")
+        return value, self.monitor.update(value)

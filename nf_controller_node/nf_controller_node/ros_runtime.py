@@ -1,0 +1,79 @@
+"""The one ``main()`` of our nodes: ``--help``, rclpy start-up, an EventsExecutor loop that stops
+cleanly on SIGINT/SIGTERM, and an orderly shutdown.
+
+rclpy 7.1's EventsExecutor hangs when ``rclpy.shutdown()`` runs in another thread (which is
+what rclpy's own signal handler does) and ``spin_until_future_complete`` without a timeout
+never returns. So rclpy's signal handlers stay off, ours only set a flag, and the executor is
+spun in short ``spin_once`` slices that check it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import ParameterException
+from rclpy.experimental import EventsExecutor
+from rclpy.logging import get_logger
+from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+
+SPIN_SLICE = 0.1  # s, longest wait before the stop flag is looked at
+
+
+def parse_cli(prog: str, description: str, argv: Sequence[str]) -> None:
+    """Give the executable a ``--help`` (non-ROS arguments are refused); ROS arguments pass through."""
+    parser = argparse.ArgumentParser(
+        prog=prog,
+        description=description,
+        epilog="Node parameters and remappings follow --ros-args, e.g. "
+        "--ros-args -p mode:=realtime --params-file config/gear.yaml",
+    )
+    parser.parse_args(remove_ros_args(list(argv))[1:])
+
+
+def declare_read_only(node: Node, spec: Mapping[str, tuple[Any, str]]) -> dict[str, Any]:
+    """Declare parameters ``name: (default, description)`` as read-only (fixed for the node's life)
+    and return their values. Checking the values is the caller's job."""
+    values = {}
+    for name, (default, description) in spec.items():
+        descriptor = ParameterDescriptor(description=description, read_only=True)
+        values[name] = node.declare_parameter(name, default, descriptor).value
+    return values
+
+
+def run_node(make_node: Callable[[], Node], prog: str, description: str, argv: Sequence[str] | None = None) -> int:
+    """Run one node until SIGINT/SIGTERM. Returns the exit code (2 when the node refused its parameters)."""
+    argv = list(sys.argv if argv is None else argv)
+    parse_cli(prog, description, argv)
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    node: Node | None = None
+    executor = None
+    try:
+        try:
+            node = make_node()
+        except (ValueError, ParameterException) as exc:  # bad parameters: the node says which and why
+            get_logger(prog).fatal(f"not starting: {exc}")
+            return 2
+        executor = EventsExecutor()
+        executor.add_node(node)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=SPIN_SLICE)
+        return 0
+    finally:
+        if executor is not None:
+            executor.shutdown()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

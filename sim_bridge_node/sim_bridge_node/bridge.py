@@ -1,0 +1,197 @@
+"""ROS-free core of ``sim_bridge_node``: command checks, driver-side gravity, command timeout and
+safe hold, and a simulation clock that never runs backwards.
+
+The node only moves messages in and out; everything it decides is here, so it is tested
+without a ROS graph. Two ways to drive it:
+
+- lockstep: ``accept_command`` then ``step_commanded`` (one physics step per accepted command);
+- realtime: ``accept_command`` whenever a command arrives, ``step_realtime(now)`` every tick,
+  which applies the last command until it is older than ``command_timeout`` and the safe hold
+  (the simulator's gravity torque + joint damping) after that.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from sim_bridge_node.env import InsertionEnv, Observation
+
+MODES = ("lockstep", "realtime")
+ACCEPTED, STALE, BAD = "accepted", "stale", "bad"  # outcomes of accept_command
+
+
+@dataclass(frozen=True)
+class BridgeConfig:
+    """Settings of the bridge; ``check`` names the first bad value."""
+
+    mode: str = "lockstep"  # lockstep | realtime
+    command_timeout: float = 0.05  # s of wall time without a command before the safe hold (realtime)
+    driver_gravity_compensation: bool = False  # add the simulator's gravity torque to every command (Franka)
+    hold_damping: float = 2.0  # Nm s/rad (N s/m for the block), joint damping of the safe hold
+
+    def check(self) -> None:
+        """Raise ``ValueError`` with the reason if a value is out of range."""
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if not np.isfinite(self.command_timeout) or self.command_timeout <= 0.0:
+            raise ValueError(f"command_timeout must be > 0 s, got {self.command_timeout}")
+        if not np.isfinite(self.hold_damping) or self.hold_damping < 0.0:
+            raise ValueError(f"hold_damping must be >= 0, got {self.hold_damping}")
+
+
+class SimBridge:
+    """Steps an ``InsertionEnv`` with checked commands; counts everything that went wrong."""
+
+    def __init__(self, env: InsertionEnv, config: BridgeConfig | None = None) -> None:
+        self.env = env
+        self.config = config or BridgeConfig()
+        self.config.check()
+        m = env.model
+        self._vadr = np.array([m.joint(n).dofadr[0] for n in env.scene.joint_names])
+        self._scratch = mujoco.MjData(m)  # for the gravity torque, so the real state is untouched
+        self._rne = np.zeros(m.nv)
+        self._command = np.zeros(env.nu)  # last accepted command, without the driver's gravity
+        self._has_command = False
+        self._command_time = -np.inf  # wall time (s) of the last accepted command
+        self.torque = np.zeros(env.nu)  # torque applied in the last step (Nm), what `effort` reports
+        self.clock_offset = 0.0  # sim time (s) of all earlier episodes: the clock never goes back
+        self.steps = 0
+        self.bad_commands = 0
+        self.stale_commands = 0  # lockstep: replies to an earlier state (late, or duplicated by a resend)
+        self.command_timeouts = 0  # times the realtime bridge fell into the safe hold for lack of commands
+        self.hold_steps = 0
+        self.in_hold = True  # realtime: no command yet
+        self.last_error = ""
+
+    # ------------------------------------------------------------------ state
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """Names of the commanded joints, in command order."""
+        return tuple(self.env.scene.joint_names)
+
+    @property
+    def sim_time(self) -> float:
+        """Simulated time since the bridge started, across resets (s); stamps and /clock use it."""
+        return self.clock_offset + self.env.time
+
+    @property
+    def stamp_ns(self) -> int:
+        """Stamp of the current state (ns of simulated time): what joint_states and clock carry."""
+        return round(self.sim_time * 1e9)
+
+    @property
+    def dt(self) -> float:
+        """Physics step (s)."""
+        return float(self.env.model.opt.timestep)
+
+    def gravity(self) -> np.ndarray:
+        """Gravity torque of the simulated arm at its current configuration (Nm), no velocity terms."""
+        m, d = self.env.model, self._scratch
+        d.qpos[:] = self.env.data.qpos
+        d.qvel[:] = 0.0
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_comPos(m, d)
+        mujoco.mj_comVel(m, d)
+        mujoco.mj_rne(m, d, 0, self._rne)
+        return self._rne[self._vadr].copy()
+
+    def hold_torque(self) -> np.ndarray:
+        """Safe hold of the driver: gravity compensation + joint damping."""
+        return self.gravity() - self.config.hold_damping * self.env.dq
+
+    # ------------------------------------------------------------------ commands
+    def check_command(self, data: Sequence[float]) -> np.ndarray:
+        """The command as an array, or ``ValueError`` naming what is wrong with it."""
+        arr = np.asarray(data, dtype=np.float64).reshape(-1)
+        if arr.size != self.env.nu:
+            raise ValueError(f"command has {arr.size} values, expected {self.env.nu} ({', '.join(self.joint_names)})")
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            names = [self.joint_names[i] for i in np.flatnonzero(bad)]
+            raise ValueError(f"command contains NaN/Inf for {names}")
+        return arr
+
+    def accept_command(self, data: Sequence[float], now: float, answers: int | None = None) -> str:
+        """Take a command received at wall time ``now`` (s). Returns ACCEPTED, BAD (reason in
+        ``last_error``) or, in lockstep, STALE when ``answers`` (the stamp of the state the command
+        answers, if the sender says) is not the current state's."""
+        try:
+            arr = self.check_command(data)
+        except (ValueError, TypeError) as exc:
+            self.bad_commands += 1
+            self.last_error = str(exc)
+            return BAD
+        if answers is not None and self.config.mode == "lockstep" and answers != self.stamp_ns:
+            self.stale_commands += 1
+            return STALE
+        self._command[:] = arr
+        self._has_command = True
+        self._command_time = now
+        return ACCEPTED
+
+    @property
+    def has_command(self) -> bool:
+        """A valid command is waiting (lockstep) or held (realtime)."""
+        return self._has_command
+
+    def _apply(self, tau: np.ndarray) -> None:
+        self.torque[:] = tau
+        self.env.step(tau)  # clamps to the actuator limits; tau is finite here
+        self.torque[:] = self.env.last_torque
+        self.steps += 1
+
+    def _commanded(self) -> np.ndarray:
+        if self.config.driver_gravity_compensation:
+            return self._command + self.gravity()
+        return self._command.copy()
+
+    # ------------------------------------------------------------------ stepping
+    def step_commanded(self) -> bool:
+        """Lockstep: one physics step with the waiting command, which is used up. False if none waits."""
+        if not self._has_command:
+            return False
+        self._apply(self._commanded())
+        self._has_command = False
+        return True
+
+    def step_realtime(self, now: float) -> bool:
+        """Realtime: one physics step with the last command, or the safe hold if it is older than
+        ``command_timeout`` (or there never was one). Returns True while in the safe hold."""
+        stale = not self._has_command or now - self._command_time > self.config.command_timeout
+        if stale and not self.in_hold and self._has_command:
+            self.command_timeouts += 1
+        if stale:
+            self.hold_steps += 1
+            self._apply(self.hold_torque())
+        else:
+            self._apply(self._commanded())
+        self.in_hold = stale
+        return stale
+
+    # ------------------------------------------------------------------ episodes
+    def reset(self, seed: int | None = None, q: np.ndarray | None = None) -> Observation:
+        """Reset the world (``InsertionEnv.reset``); the clock continues; the held command is dropped.
+
+        Raises ``ValueError`` for a rejected start configuration and leaves the world as it was.
+        """
+        env = self.env
+        backup = mujoco.MjData(env.model)
+        mujoco.mj_copyData(backup, env.model, env.data)
+        last_torque = env.last_torque.copy()
+        elapsed = env.time
+        try:
+            obs = env.reset(seed=seed, q=q)
+        except (ValueError, RuntimeError):
+            mujoco.mj_copyData(env.data, env.model, backup)
+            env.last_torque[:] = last_torque
+            mujoco.mj_forward(env.model, env.data)
+            raise
+        self.clock_offset += elapsed + self.dt  # strictly later than any stamp already published
+        self._has_command = False
+        self.torque[:] = 0.0
+        self.in_hold = True
+        return obs

@@ -1,0 +1,245 @@
+"""sim_bridge node: the MuJoCo Panda behind the topics a ros2_control effort driver uses.
+
+Publishes ``joint_states`` (stamp = simulated time), ``clock``, ``task_status`` and
+``/diagnostics``; takes ``effort_controller/commands``; serves ``~/reset``. The decisions
+(command checks, timeout, safe hold, clock) live in ``sim_bridge_node.bridge``.
+
+Modes (parameter ``mode``):
+
+- ``lockstep``: publish a state, wait for the command that answers it, step once, publish the
+  next state. Deterministic, as fast as the loop allows. If no command comes within
+  ``lockstep_resend`` s of wall time (e.g. the controller is not up yet, or a message was
+  lost) the same state is published again. A bad command is ignored: the simulation waits.
+- ``realtime``: a 1 kHz wall-clock timer steps with the last command; after
+  ``command_timeout`` s without one the bridge holds the arm (gravity compensation + joint
+  damping) and counts a command timeout, as a real arm's driver would.
+"""
+
+from __future__ import annotations
+
+import array
+import time
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from nf_msgs.msg import TaskStatus
+from nf_msgs.srv import ResetSim
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from nf_controller_node import topics
+from nf_controller_node.ros_runtime import declare_read_only, run_node
+from nf_controller_node.topics import parse_stamp_label
+from sim_bridge_node.bridge import ACCEPTED, BAD, STALE, BridgeConfig, SimBridge
+from sim_bridge_node.env import InsertionEnv
+from sim_bridge_node.scenes import TASKS
+
+PARAMETERS = {
+    "task": ("gear", f"scene: one of {TASKS}"),
+    "block_plane": ("vertical", "block task only: vertical | horizontal"),
+    "mode": ("lockstep", "lockstep (step per command, publishes clock) | realtime (1 kHz wall clock)"),
+    "driver_gravity_compensation": (False, "add the simulator's gravity torque to every command (like Franka)"),
+    "command_timeout": (0.05, "realtime: s without a command before the safe hold"),
+    "hold_damping": (2.0, "joint damping of the safe hold, Nm s/rad"),
+    "seed": (-1, "start of the first episode: < 0 fixed start, else a sampled start"),
+    "lockstep_resend": (0.1, "lockstep: s of wall time before an unanswered state is published again"),
+    "task_status_rate": (50.0, "task_status messages per s of simulated time (0: off)"),
+    "clock_period": (0.001, "s of simulated time between clock messages (0: every step)"),
+    "diagnostics_period": (1.0, "s of wall time between /diagnostics messages"),
+}
+
+STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)  # ros2_control's default
+_LATE_TICK = 2.0  # realtime: a tick later than this many periods counts as late
+
+
+def _stamp(ns: int) -> Time:
+    sec, nanosec = divmod(ns, 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def _check(p: dict) -> None:
+    if p["task"] not in TASKS:
+        raise ValueError(f"task must be one of {TASKS}, got {p['task']!r}")
+    for name in ("lockstep_resend", "diagnostics_period"):
+        if not p[name] > 0.0:
+            raise ValueError(f"{name} must be > 0, got {p[name]}")
+    for name in ("task_status_rate", "clock_period"):
+        if not p[name] >= 0.0:
+            raise ValueError(f"{name} must be >= 0, got {p[name]}")
+
+
+class SimBridgeNode(Node):
+    """Wires a ``SimBridge`` to ros2_control-style topics; see the module docstring."""
+
+    def __init__(self, qos: QoSProfile = STATE_QOS) -> None:
+        super().__init__("sim_bridge")
+        p = declare_read_only(self, PARAMETERS)
+        _check(p)
+        config = BridgeConfig(mode=p["mode"], command_timeout=p["command_timeout"],
+                              driver_gravity_compensation=p["driver_gravity_compensation"],
+                              hold_damping=p["hold_damping"])
+        config.check()
+        self.params = p
+        self.bridge = SimBridge(InsertionEnv(p["task"], plane=p["block_plane"]), config)
+        self.bridge.reset(seed=p["seed"])
+        self.lockstep = p["mode"] == "lockstep"
+        dt = self.bridge.dt
+        self._status_every = max(1, round(1.0 / (p["task_status_rate"] * dt))) if p["task_status_rate"] else 0
+        self._clock_every = max(1, round(p["clock_period"] / dt))
+
+        self._state = JointState()
+        self._state.name = list(self.bridge.joint_names)
+        self._clock_msg = Clock()
+        self._state_pub = self.create_publisher(JointState, topics.JOINT_STATES, qos)
+        self._clock_pub = self.create_publisher(Clock, topics.CLOCK, qos) if self.lockstep else None
+        self._task_pub = self.create_publisher(TaskStatus, topics.TASK_STATUS, qos)
+        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
+        on_command = self._on_command_lockstep if self.lockstep else self._on_command_realtime
+        self.create_subscription(Float64MultiArray, topics.COMMANDS, on_command, qos)
+        self.create_service(ResetSim, "~/reset", self._on_reset)
+
+        self.resends = 0
+        self.late_ticks = 0
+        self._last_publish = time.monotonic()
+        self._last_tick = None
+        self._window = (time.monotonic(), 0, 0.0)  # wall time, steps, sim time at the last report
+        if self.lockstep:
+            self.create_timer(p["lockstep_resend"] / 2.0, self._on_resend_check)
+        else:
+            self.create_timer(dt, self._on_tick)
+        self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
+        self._publish_state()
+        self._publish_task_status()
+        self.get_logger().info(
+            f"{p['task']} scene, {p['mode']} mode, driver gravity compensation "
+            f"{'on' if config.driver_gravity_compensation else 'off'}, joints {self._state.name}")
+
+    # ------------------------------------------------------------------ commands and steps
+    def _on_command_lockstep(self, msg: Float64MultiArray) -> None:
+        if not self._accept(msg):
+            return
+        self.bridge.step_commanded()
+        self._after_step()
+
+    def _on_command_realtime(self, msg: Float64MultiArray) -> None:
+        self._accept(msg)
+
+    def _accept(self, msg: Float64MultiArray) -> bool:
+        dims = msg.layout.dim
+        answers = parse_stamp_label(dims[0].label) if dims else None
+        outcome = self.bridge.accept_command(msg.data, time.monotonic(), answers)
+        if outcome == BAD:
+            self.get_logger().error(f"ignoring effort command: {self.bridge.last_error} "
+                                    f"({self.bridge.bad_commands} so far)", throttle_duration_sec=1.0)
+        elif outcome == STALE:
+            self.get_logger().warn(f"dropping a reply to an earlier state ({self.bridge.stale_commands} so far)",
+                                   throttle_duration_sec=1.0)
+        return outcome == ACCEPTED
+
+    def _on_tick(self) -> None:
+        now = time.monotonic()
+        if self._last_tick is not None and now - self._last_tick > _LATE_TICK * self.bridge.dt:
+            self.late_ticks += 1
+        self._last_tick = now
+        was_holding = self.bridge.in_hold
+        holding = self.bridge.step_realtime(now)
+        self._after_step()
+        if holding != was_holding:
+            if holding:
+                self.get_logger().error(
+                    f"no effort command for {self.params['command_timeout'] * 1e3:.0f} ms: safe hold "
+                    f"(gravity compensation + joint damping), timeout #{self.bridge.command_timeouts}")
+            else:
+                self.get_logger().info("effort commands arrive again: leaving the safe hold")
+            self._publish_diagnostics()
+
+    def _after_step(self) -> None:
+        self._publish_state()
+        steps = self.bridge.steps
+        if self._clock_pub is not None and steps % self._clock_every == 0:
+            self._clock_msg.clock = self._state.header.stamp
+            self._clock_pub.publish(self._clock_msg)
+        if self._status_every and steps % self._status_every == 0:
+            self._publish_task_status()
+
+    def _on_resend_check(self) -> None:
+        if time.monotonic() - self._last_publish >= self.params["lockstep_resend"]:
+            self.resends += 1
+            self._publish_state()
+
+    # ------------------------------------------------------------------ publishing
+    def _publish_state(self) -> None:
+        env, msg = self.bridge.env, self._state
+        msg.header.stamp = _stamp(self.bridge.stamp_ns)
+        msg.position = array.array("d", env.q.tobytes())
+        msg.velocity = array.array("d", env.dq.tobytes())
+        msg.effort = array.array("d", self.bridge.torque.tobytes())
+        self._state_pub.publish(msg)
+        self._last_publish = time.monotonic()
+
+    def _publish_task_status(self) -> None:
+        env = self.bridge.env
+        msg = TaskStatus(task=env.task, insertion_depth=env.insertion_depth, success=env.success,
+                         contact_force=float(np.linalg.norm(env.contact_force)))
+        msg.header.stamp = _stamp(self.bridge.stamp_ns)
+        msg.header.frame_id = "world"
+        msg.part_position = env.x.tolist()
+        self._task_pub.publish(msg)
+
+    def _publish_diagnostics(self) -> None:
+        b = self.bridge
+        now = time.monotonic()
+        t0, steps0, sim0 = self._window
+        wall = max(now - t0, 1e-9)
+        self._window = (now, b.steps, b.sim_time)
+        holding = not self.lockstep and b.in_hold
+        status = DiagnosticStatus(name="sim_bridge: driver", hardware_id=f"mujoco:{b.env.task}")
+        if holding and b.command_timeouts:
+            status.level, status.message = DiagnosticStatus.WARN, "command timeout: safe hold"
+        elif holding:
+            status.level, status.message = DiagnosticStatus.OK, "waiting for the first command: safe hold"
+        elif b.bad_commands:
+            status.level, status.message = DiagnosticStatus.WARN, f"bad commands ignored: {b.last_error}"
+        else:
+            status.level, status.message = DiagnosticStatus.OK, "running"
+        values = {
+            "mode": self.params["mode"], "task": b.env.task, "sim_time": f"{b.sim_time:.4f}",
+            "steps": b.steps, "steps_per_s": f"{(b.steps - steps0) / wall:.1f}",
+            "real_time_factor": f"{(b.sim_time - sim0) / wall:.3f}",
+            "safe_hold": holding, "command_timeouts": b.command_timeouts, "hold_steps": b.hold_steps,
+            "bad_commands": b.bad_commands, "stale_commands": b.stale_commands, "last_error": b.last_error,
+            "lockstep_resends": self.resends, "late_ticks": self.late_ticks,
+        }
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._diag_pub.publish(msg)
+
+    # ------------------------------------------------------------------ reset
+    def _on_reset(self, request: ResetSim.Request, response: ResetSim.Response) -> ResetSim.Response:
+        q = np.asarray(request.q, dtype=np.float64) if len(request.q) else None
+        try:
+            obs = self.bridge.reset(seed=int(request.seed), q=q)
+        except (ValueError, RuntimeError) as exc:
+            response.success, response.message = False, str(exc)
+            self.get_logger().error(f"reset refused: {exc}")
+            return response
+        response.success = True
+        response.q, response.x = obs.q.tolist(), obs.x.tolist()
+        self._publish_state()
+        self._publish_task_status()
+        return response
+
+
+def main(args: list[str] | None = None) -> int:
+    """Console script ``sim_bridge``."""
+    return run_node(SimBridgeNode, "sim_bridge", "MuJoCo Panda behind ros2_control-style topics "
+                    "(joint_states, effort_controller/commands), lockstep or realtime.", args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,240 @@
+"""sim_bridge and nf_controller as separate processes over real DDS: closed loop in lockstep,
+bad joint states from a third process, and the realtime driver's safe hold when the
+controller dies."""
+
+from __future__ import annotations
+
+import re
+import signal
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from nf_msgs.msg import ControllerStatus, TaskStatus
+from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
+from nf_msgs.srv import ResetSim
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from nf_controller_node.flow_spec import FlowArchitecture
+from nf_controller_node.panda_spec import TORQUE_LIMITS
+from nf_controller_node.policy_params import PolicyParameters
+
+from ros_testing import REPO, RosProcess, allocate_domain_id
+
+pytestmark = pytest.mark.ros
+
+SIM = ["-m", "sim_bridge_node.node", "--ros-args", "-p", "task:=free"]
+CONTROLLER = ["-m", "nf_controller_node.node", "--ros-args"]
+GOAL_OFFSET = np.array([0.05, 0.0, -0.10])  # m, x_ref relative to the start TCP position
+RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+SAMPLED = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)  # for high-rate topics
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def policy_msg(x_ref: np.ndarray, version: int = 7, seed: int = 0, stiffness: float = 40.0,
+               damping: float = 20.0) -> PolicyParametersMsg:
+    """Random flow weights (the stability theorem holds for any), S = stiffness I, D = damping I."""
+    arch = FlowArchitecture(dim=3, n_flow=2, n_hidden=16, activation="gelu")
+    weights = np.random.default_rng(seed).uniform(-0.25, 0.25, arch.n_params)
+    params = PolicyParameters(arch, weights, np.zeros(1), stiffness * np.eye(3), damping * np.eye(3),
+                              np.asarray(x_ref, float), version=version)
+    return params.fill_msg(PolicyParametersMsg())
+
+
+def diag_values(msg: DiagnosticArray, prefix: str) -> dict[str, str] | None:
+    """Key-values of the first status whose name starts with ``prefix``."""
+    for status in msg.status:
+        if status.name.startswith(prefix):
+            return {kv.key: kv.value for kv in status.values}
+    return None
+
+
+class Probe:
+    """The test's own ROS node in its own context: collects messages, spins until a condition holds."""
+
+    def __init__(self, domain: int) -> None:
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self.node = rclpy.create_node("test_probe", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.log: dict[str, list] = {}
+
+    def collect(self, msg_type: type, topic: str, qos: QoSProfile = RELIABLE,
+                convert: Callable | None = None) -> list:
+        """Append every message on ``topic`` (passed through ``convert``) with its arrival time."""
+        out = self.log.setdefault(topic, [])
+        self.node.create_subscription(
+            msg_type, topic, lambda m: out.append((time.monotonic(), convert(m) if convert else m)), qos)
+        return out
+
+    def spin_until(self, predicate: Callable[[], bool], timeout: float) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not predicate():
+            self.executor.spin_once(timeout_sec=0.02)
+        return predicate()
+
+    def spin_for(self, seconds: float) -> None:
+        self.spin_until(lambda: False, seconds)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+@pytest.fixture
+def probe_and_domain():
+    domain = allocate_domain_id()
+    probe = Probe(domain)
+    yield probe, domain
+    probe.close()
+
+
+def _command_problems(commands: list) -> list[str]:
+    bad = []
+    for _, data in commands:
+        tau = np.asarray(data)
+        if tau.shape != (7,) or not np.all(np.isfinite(tau)) or np.any(np.abs(tau) > TORQUE_LIMITS + 1e-9):
+            bad.append(str(tau.tolist()))
+    return bad
+
+
+def test_lockstep_closed_loop_reaches_goal(probe_and_domain, tmp_path: Path):
+    probe, domain = probe_and_domain
+    tasks = probe.collect(TaskStatus, "/task_status", RELIABLE, lambda m: (
+        np.array(m.part_position), m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec))
+    statuses = probe.collect(ControllerStatus, "/controller_status")
+    commands = probe.collect(Float64MultiArray, "/effort_controller/commands", SAMPLED, lambda m: list(m.data))
+    diags = probe.collect(DiagnosticArray, "/diagnostics")
+    with RosProcess([*SIM, "-p", "mode:=lockstep"], domain, tmp_path / "sim.log") as sim, \
+         RosProcess(CONTROLLER, domain, tmp_path / "controller.log") as ctl:
+        logs = lambda: f"sim:\n{sim.log()}\ncontroller:\n{ctl.log()}"  # noqa: E731
+        assert probe.spin_until(lambda: len(tasks) > 0, 20.0), logs()
+        x0 = tasks[0][1][0]
+        x_ref = x0 + GOAL_OFFSET
+        publisher = probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", LATCHED)
+        publisher.publish(policy_msg(x_ref))
+        assert probe.spin_until(lambda: any(s.policy_version == 7 for _, s in statuses), 20.0), logs()
+        t_policy = time.monotonic()
+
+        def distance() -> float:
+            return float(np.linalg.norm(tasks[-1][1][0] - x_ref))
+
+        assert probe.spin_until(lambda: distance() < 0.005, 20.0), f"distance {distance():.4f} m\n{logs()}"
+        converged_after = time.monotonic() - t_policy
+
+        client = probe.node.create_client(ResetSim, "/sim_bridge/reset")
+        assert client.wait_for_service(timeout_sec=10.0)
+        bad = client.call_async(ResetSim.Request(seed=-1, q=[0.0, 0.0, 0.0]))
+        assert probe.spin_until(bad.done, 10.0) and not bad.result().success
+        assert "start configuration" in bad.result().message
+        good = client.call_async(ResetSim.Request(seed=3))
+        assert probe.spin_until(good.done, 10.0) and good.result().success, good.result().message
+        reset_x = np.array(good.result().x)
+        assert len(good.result().q) == 7 and np.linalg.norm(reset_x - x_ref) > 0.02
+        n_before = len(tasks)
+        assert probe.spin_until(lambda: len(tasks) > n_before + 5, 10.0)
+        probe.spin_for(1.2)  # one more diagnostics report from each node
+    assert sim.proc.returncode == 0 and ctl.proc.returncode == 0, logs()
+    stamps = np.array([s for _, (_, s) in tasks])
+    assert np.all(np.diff(stamps) > 0), "task_status stamps (simulated time) increase, across the reset too"
+    assert commands and not _command_problems(commands)
+    running = [s for _, s in statuses if s.policy_version == 7]
+    assert all(s.mode == ControllerStatus.MODE_IDLE and s.fault == "" for s in running), running[-1]
+    sim_diag = [v for _, m in diags if (v := diag_values(m, "sim_bridge"))]
+    ctl_diag = [v for _, m in diags if (v := diag_values(m, "nf_controller"))]
+    assert sim_diag and sim_diag[-1]["bad_commands"] == "0"
+    assert ctl_diag and ctl_diag[-1]["bad_inputs"] == "0" and ctl_diag[-1]["faults"] == "0"
+    rate = max(float(v["steps_per_s"]) for v in sim_diag)
+    print(f"lockstep: {rate:.0f} steps/s (best 1 s window), 5 mm from x_ref {converged_after:.2f} s "
+          f"after the policy arrived; sim time {stamps[-1]:.2f} s")
+
+
+def test_controller_holds_on_bad_joint_states(probe_and_domain, tmp_path: Path):
+    probe, domain = probe_and_domain
+    statuses = probe.collect(ControllerStatus, "/controller_status")
+    commands = probe.collect(Float64MultiArray, "/effort_controller/commands", RELIABLE, lambda m: list(m.data))
+    diags = probe.collect(DiagnosticArray, "/diagnostics")
+    publisher = probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", LATCHED)
+    publisher.publish(policy_msg(np.array([0.5, 0.0, 0.25])))
+    with RosProcess(CONTROLLER, domain, tmp_path / "controller.log") as ctl:
+        assert probe.spin_until(lambda: any(s.policy_version == 7 for _, s in statuses), 20.0), ctl.log()
+        injector = RosProcess([str(REPO / "tests/peers/fault_injector.py"), "0.6", "1.0", "0.3"], domain,
+                              tmp_path / "injector.log")
+        with injector:
+            assert probe.spin_until(lambda: not injector.alive(), 20.0)
+            probe.spin_for(1.2)
+        assert injector.proc.returncode == 0, injector.log()
+    log = ctl.log()
+    assert ctl.proc.returncode == 0, log
+    sent = int(re.findall(r"after (\d+) states", injector.log())[-1])
+    assert len(commands) > 100, f"{len(commands)} commands\n{log}"
+    problems = _command_problems(commands)
+    assert not problems, f"{len(problems)} bad commands, first {problems[0]}"
+    modes = [(s.mode, s.fault) for _, s in statuses if s.policy_version == 7]
+    assert (ControllerStatus.MODE_IDLE, "") in modes, "the valid phase runs the flow controller"
+    assert modes[-1][0] == ControllerStatus.MODE_SAFE_HOLD and modes[-1][1], modes[-1]
+    faults = {f for m, f in modes if m == ControllerStatus.MODE_SAFE_HOLD}
+    assert len(faults) == 1, f"the first fault stays latched: {faults}"
+    last = diag_values(diags[-1][1], "nf_controller")
+    assert last is not None and int(last["bad_inputs"]) > 30 and last["mode"] == "safe_hold", last
+    assert int(last["steps"]) == sent, f"every joint state gets an answer: {last['steps']} of {sent}"
+    assert "safe hold" in log and "Traceback" not in log, log
+    print(f"controller: {len(commands)} finite commands, fault latched: {faults.pop()!r}, "
+          f"{last['bad_inputs']} bad inputs rejected")
+
+
+def test_realtime_sim_holds_arm_when_controller_is_killed(probe_and_domain, tmp_path: Path):
+    probe, domain = probe_and_domain
+    tasks = probe.collect(TaskStatus, "/task_status", RELIABLE, lambda m: np.array(m.part_position))
+    states = probe.collect(JointState, "/joint_states", SAMPLED, lambda m: np.array(m.position))
+    statuses = probe.collect(ControllerStatus, "/controller_status")
+    diags = probe.collect(DiagnosticArray, "/diagnostics", RELIABLE, lambda m: diag_values(m, "sim_bridge"))
+    sim_args = [*SIM, "-p", "mode:=realtime", "-p", "driver_gravity_compensation:=true"]
+    with RosProcess(sim_args, domain, tmp_path / "sim.log") as sim:
+        ctl = RosProcess([*CONTROLLER, "-p", "gravity_compensation:=false"], domain, tmp_path / "controller.log")
+        try:
+            logs = lambda: f"sim:\n{sim.log()}\ncontroller:\n{ctl.log()}"  # noqa: E731
+            assert probe.spin_until(lambda: len(tasks) > 0, 20.0), logs()
+            publisher = probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", LATCHED)
+            publisher.publish(policy_msg(tasks[-1][1]))  # x_ref = where the TCP is: hold still
+            assert probe.spin_until(lambda: any(s.policy_version == 7 for _, s in statuses), 20.0), logs()
+            probe.spin_for(1.0)
+            assert statuses[-1][1].mode == ControllerStatus.MODE_IDLE, statuses[-1][1].fault
+            assert not any(v and v["safe_hold"] == "True" and v["command_timeouts"] != "0" for _, v in diags), logs()
+            q_before = states[-1][1]
+            ctl.proc.send_signal(signal.SIGKILL)
+            t_kill = time.monotonic()
+            holding = lambda: any(t > t_kill and v and v["safe_hold"] == "True" for t, v in diags)  # noqa: E731
+            assert probe.spin_until(holding, 5.0), logs()
+            t_hold = next(t for t, v in diags if t > t_kill and v and v["safe_hold"] == "True")
+            probe.spin_for(1.0)
+        finally:
+            ctl.stop()
+    assert sim.proc.returncode == 0, sim.log()
+    after = np.array([q for t, q in states if t > t_kill])
+    drift = np.degrees(np.max(np.abs(after - q_before), axis=0))
+    hold = next(v for t, v in diags if t > t_kill and v and v["safe_hold"] == "True")
+    assert int(hold["command_timeouts"]) == 1
+    assert t_hold - t_kill < 0.5, f"safe hold reported {t_hold - t_kill:.3f} s after the kill"
+    assert len(after) > 100 and np.all(drift < 3.0), f"joint drift after the kill (deg): {drift}"
+    print(f"realtime: safe hold reported {1e3 * (t_hold - t_kill):.0f} ms after SIGKILL, "
+          f"max joint drift over 1 s {drift.max():.3f} deg")
+
+
+@pytest.mark.parametrize(("args", "reason"), [
+    ([*SIM, "-p", "mode:=fast"], "mode must be one of"),
+    ([*CONTROLLER, "-p", "held_part:=anvil"], "held_part must be"),
+])
+def test_nodes_refuse_bad_parameters(args, reason, tmp_path: Path):
+    with RosProcess(args, allocate_domain_id(), tmp_path / "node.log") as node:
+        node.proc.wait(30.0)
+    assert node.proc.returncode == 2 and reason in node.log(), node.log()
