@@ -47,6 +47,19 @@ def main() -> int:
     if sim_script.exists():
         if _run("sim", [sys.executable, str(sim_script), *(["--quick"] if args.quick else [])]) is None:
             failed.append("sim")
+    learner_script = HERE / "bench_learner.py"
+    if learner_script.exists():
+        learner = _run("learner_update", [sys.executable, str(learner_script), *(["--quick"] if args.quick else [])])
+        if learner is None:
+            failed.append("learner_update")
+        else:
+            s = learner["summary"]
+            line = (f"   PPO update: NF {s['nf_update_s']:.2f} s, MLP {s['mlp_update_s']:.2f} s "
+                    f"({s['update_nf_over_mlp']:.2f}x)")
+            if "iteration_nf_over_mlp" in s:
+                line += (f"; training iteration {s['iteration_nf_over_mlp']:.2f}x "
+                         f"(target <= {s['target_iteration_max']}x)")
+            print(line)
     if failed:
         print(f"failed: {', '.join(failed)}")
     return 1 if failed else 0

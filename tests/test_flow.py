@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from torch.distributions import Normal
 
 from learner_node.flow import RealNVPFlow, init_flow_weights
 from learner_node.policy import NFPolicy
@@ -367,3 +368,80 @@ def test_selfcheck_passes(capsys):
     out = capsys.readouterr().out
     assert code == 0, out
     assert "max |J torch - compiled|" in out and "force() per call" in out
+
+
+# ---- compiled learning path (flow_kernels) == plain torch ops --------------------------------------
+
+
+def _rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Largest difference relative to the largest reference value (at least 1)."""
+    return float((a - b).abs().max()) / max(1.0, float(b.abs().max()))
+
+
+def _values_and_grads(fn, x: torch.Tensor, params: list, cotangents: list) -> list[torch.Tensor]:
+    """Outputs of fn(x) and the gradient of sum(out * cotangent) in x and every parameter."""
+    x = x.clone().requires_grad_()
+    outs = fn(x)
+    outs = outs if isinstance(outs, tuple) else (outs,)
+    loss = sum((o * c).sum() for o, c in zip(outs, cotangents, strict=True))
+    grads = torch.autograd.grad(loss, [x, *params], allow_unused=True)
+    grads = [torch.zeros_like(p) if g is None else g for p, g in zip([x, *params], grads, strict=True)]
+    return [o.detach() for o in outs] + grads
+
+
+@pytest.mark.parametrize(("dim", "act"), CASES)
+@pytest.mark.parametrize("scale", [1.0, 3.0])
+def test_compiled_phi_and_jacobian_equals_autograd_reference(dim, act, scale):
+    flow = _flow(_arch(dim, act, n_flow=3, n_hidden=7), seed=13, scale=scale)
+    assert flow.compiled()
+    x = _states(dim, 17, seed=3)
+    cot = [_states(dim, 17, seed=4), _states(dim * dim, 17, seed=5).reshape(17, dim, dim)]
+    params = list(flow.params)
+    fast = _values_and_grads(flow.phi_and_jacobian, x, params, cot)
+    ref = _values_and_grads(flow.phi_and_jacobian_autograd, x, params, cot)
+    for a, b in zip(fast, ref, strict=True):
+        assert _rel_err(a, b) < 1e-11  # the same sums in another order
+    with torch.no_grad():  # the forward-only path (nothing kept for backward) gives the same values
+        phi, J = flow.phi_and_jacobian(x)
+    assert torch.equal(phi, fast[0]) and torch.equal(J, fast[1])
+
+
+@pytest.mark.parametrize(("dim", "act"), CASES)
+def test_compiled_mean_force_equals_reference(dim, act):
+    policy = _policy(_arch(dim, act, n_flow=2, n_hidden=9), seed=14, scale=2.0)
+    x, xd = _states(dim, 11, seed=6), _states(dim, 11, seed=7)
+    params = list(policy.flow.params)
+    cot = [_states(dim, 11, seed=8)]
+    fast = _values_and_grads(lambda v: policy.mean_force(v, xd), x, params, cot)
+    ref = _values_and_grads(lambda v: policy.mean_force_reference(v, xd), x, params, cot)
+    for a, b in zip(fast, ref, strict=True):
+        assert _rel_err(a, b) < 1e-11
+    # the gradient the PPO update takes: log_prob through the mean force into every weight array
+    # (the last t-bias cancels in phi(x) - phi(x_ref): its gradient is 0 up to rounding in both)
+    a = _states(dim, 11, seed=9)
+    grads = torch.autograd.grad(policy.log_prob(x, xd, a).sum(), params)
+    mean = policy.mean_force_reference(x, xd)
+    grads_ref = torch.autograd.grad(Normal(mean, policy.std().expand_as(mean)).log_prob(a).sum(), params)
+    flat, flat_ref = torch.cat([g.reshape(-1) for g in grads]), torch.cat([g.reshape(-1) for g in grads_ref])
+    assert _rel_err(flat, flat_ref) < 1e-11
+
+
+def test_compiled_path_gathers_weights_when_not_aliased_and_float32_uses_torch_ops():
+    arch = _arch(3, "gelu")
+    policy = _policy(arch, seed=15)
+    x, xd = _states(3, 5, seed=1), _states(3, 5, seed=2)
+    with torch.no_grad():
+        before = policy.mean_force(x, xd)
+        # replacing a parameter's storage breaks the flat-buffer aliasing: weights are gathered instead
+        w1 = policy.flow.params[0]
+        w1.data = w1.data.clone()
+        torch.testing.assert_close(policy.mean_force(x, xd), before, rtol=0, atol=0)
+        w1.add_(0.1)  # and the kernels see the new storage
+        torch.testing.assert_close(policy.mean_force(x, xd), policy.mean_force_reference(x, xd), rtol=1e-12,
+                                   atol=1e-12)
+    p32 = NFPolicy(arch, weights=init_flow_weights(arch, np.random.default_rng(0)), dtype=torch.float32)
+    assert not p32.flow.compiled()
+    u32 = p32.mean_force(x.float(), xd.float())
+    assert u32.dtype == torch.float32
+    p64 = NFPolicy(arch, weights=init_flow_weights(arch, np.random.default_rng(0)))
+    torch.testing.assert_close(u32.double(), p64.mean_force(x, xd).detach(), rtol=1e-4, atol=1e-5)

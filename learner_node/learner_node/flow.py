@@ -5,17 +5,28 @@ The architecture and the flat weight layout are defined once in
 (``nf_controller_node.flow_eval``) both follow it. ``phi_and_jacobian`` builds J = dphi/dx
 layer by layer with the chain rule (no autograd over x), so PPO can backpropagate through J
 to the weights at the cost of one forward pass.
+
+Two implementations of ``phi_and_jacobian`` give the same values and weight gradients (to
+rounding): ``phi_and_jacobian_autograd`` is plain torch ops (any dtype, differentiable any
+number of times, usable under ``torch.func``); the default float64 path runs the compiled
+batched kernels of ``flow_kernels`` inside one ``autograd.Function`` whose backward is the
+analytic vector-Jacobian product (differentiable once). That removes the per-op overhead of
+hundreds of tiny tensor ops per PPO minibatch.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import torch
 from torch import nn
+from torch.autograd.function import FunctionCtx, once_differentiable
 
-from nf_controller_node.flow_spec import FlowArchitecture
+from nf_controller_node.flow_spec import ACTIVATION_CODES, FlowArchitecture
+
+from .flow_kernels import flow_backward, flow_forward, layer_table
 
 _SQRT_HALF = math.sqrt(0.5)
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
@@ -60,8 +71,37 @@ def init_flow_weights(arch: FlowArchitecture, rng: np.random.Generator, scale: f
     return np.concatenate(out).astype(np.float64)
 
 
+class _CompiledPhiJacobian(torch.autograd.Function):
+    """(phi, J) of a float64 ``RealNVPFlow`` by the compiled kernels; backward is their analytic VJP."""
+
+    @staticmethod
+    def forward(
+        ctx: FunctionCtx, flow: RealNVPFlow, keep: bool, x: torch.Tensor, *params: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        w = flow.kernel_weights(params)
+        phi, jac, saved = flow_forward(x.detach().contiguous().numpy(), w, flow.table, flow.arch.n_hidden,
+                                       flow.activation_code, keep)
+        if keep:  # w and saved are private copies: later in-place weight updates cannot touch them
+            ctx.flow, ctx.w, ctx.saved = flow, w, saved
+        return torch.from_numpy(phi), torch.from_numpy(jac)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx: FunctionCtx, phi_bar: torch.Tensor, jac_bar: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        flow = ctx.flow
+        gw, x_bar = flow_backward(ctx.w, flow.table, flow.arch.n_hidden, ctx.saved,
+                                  phi_bar.contiguous().numpy(), jac_bar.contiguous().numpy())
+        return (None, None, torch.from_numpy(x_bar) if ctx.needs_input_grad[2] else None,
+                *flow.split_flat_gradient(gw))
+
+
 class RealNVPFlow(nn.Module):
-    """The flow phi of flow_spec as a torch module; parameters are kept in flat-vector order."""
+    """The flow phi of flow_spec as a torch module; parameters are kept in flat-vector order.
+
+    The parameter arrays are views into one flat float64 buffer (flow_spec order), so the compiled
+    path reads all weights without gathering them; if that aliasing is ever broken (say a
+    parameter's ``.data`` is replaced), it gathers them instead.
+    """
 
     def __init__(
         self,
@@ -74,9 +114,15 @@ class RealNVPFlow(nn.Module):
         super().__init__()
         self.arch = arch
         self.dtype = dtype
+        shapes = arch.param_shapes()
+        sizes = [math.prod(shape) for shape in shapes]
+        offsets = np.cumsum([0, *sizes[:-1]]).tolist()
+        self._flat = torch.zeros(arch.n_params, dtype=dtype)
         self.params = nn.ParameterList(
-            [nn.Parameter(torch.zeros(shape, dtype=dtype)) for shape in arch.param_shapes()]
+            [nn.Parameter(v.view(shape)) for v, shape in zip(self._flat.split(sizes), shapes, strict=True)]
         )
+        self._layout = list(zip(offsets, sizes, shapes, strict=True))  # per array: flat offset, size, shape
+        self._byte_offsets = [off * self._flat.element_size() for off in offsets]
         self._parts: list[tuple[list[int], list[int], list[int]]] = []
         for layer in range(arch.n_layers):
             cond, trans = arch.partition(layer)
@@ -86,6 +132,8 @@ class RealNVPFlow(nn.Module):
         if weights is None:
             weights = init_flow_weights(arch, np.random.default_rng(seed))
         self.load_flat(weights)
+        self.table = layer_table(arch)  # for the compiled kernels
+        self.activation_code = ACTIVATION_CODES[arch.activation]
 
     # ---- flat parameter vector -------------------------------------------------------------
     def to_flat(self) -> np.ndarray:
@@ -107,6 +155,28 @@ class RealNVPFlow(nn.Module):
                 n = p.numel()
                 p.copy_(src[pos : pos + n].reshape(p.shape).to(p.dtype))
                 pos += n
+
+    def compiled(self) -> bool:
+        """True if ``phi_and_jacobian`` (and the policy's mean force) use the compiled kernels (float64)."""
+        return self.dtype == torch.float64
+
+    def param_list(self) -> list[nn.Parameter]:
+        """The parameter arrays in flow_spec order: ``list(self.params)``, read from the ParameterList's
+        own dict (iterating the list looks every item up by name, ~20x slower; this is per minibatch)."""
+        return list(self.params._parameters.values())
+
+    def kernel_weights(self, params: Sequence[torch.Tensor]) -> np.ndarray:
+        """A private float64 copy of ``params`` (this flow's parameters, in order) as the flat vector."""
+        base = self._flat.data_ptr()
+        if self._flat.dtype == torch.float64 and all(
+            p.data_ptr() == base + off for p, off in zip(params, self._byte_offsets, strict=True)
+        ):
+            return self._flat.numpy().copy()  # the parameters still live in the flat buffer
+        return torch.cat([p.detach().reshape(-1) for p in params]).to(torch.float64).numpy()
+
+    def split_flat_gradient(self, grad: np.ndarray) -> list[torch.Tensor]:
+        """A flat float64 weight gradient (flow_spec order) as one tensor per parameter array (views)."""
+        return [torch.from_numpy(grad[off : off + size].reshape(shape)) for off, size, shape in self._layout]
 
     # ---- building blocks -------------------------------------------------------------------
     def _mlp(
@@ -176,7 +246,20 @@ class RealNVPFlow(nn.Module):
         return x
 
     def phi_and_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """phi(x) (N, dim) and J = dphi/dx (N, dim, dim), analytic and differentiable in the weights."""
+        """phi(x) (N, dim) and J = dphi/dx (N, dim, dim), analytic and differentiable in the weights.
+
+        float64 flows use the compiled kernels (differentiable once, in the weights and x);
+        other dtypes use ``phi_and_jacobian_autograd``.
+        """
+        if not self.compiled():
+            return self.phi_and_jacobian_autograd(x)
+        x = self._as_batch(x)
+        params = self.param_list()
+        keep = torch.is_grad_enabled() and (x.requires_grad or any(p.requires_grad for p in params))
+        return _CompiledPhiJacobian.apply(self, keep, x, *params)
+
+    def phi_and_jacobian_autograd(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Same as ``phi_and_jacobian`` in plain torch ops (the reference; any order of derivatives)."""
         y = self._as_batch(x)
         J = torch.eye(self.arch.dim, dtype=y.dtype, device=y.device).expand(y.shape[0], -1, -1)
         for layer in range(self.arch.n_layers):

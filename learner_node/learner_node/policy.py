@@ -5,6 +5,10 @@ Mean action (the deterministic, provably stable controller)::
     u = -J(x)^T S [phi(x) - phi(x_ref)] - J(x)^T D J(x) xdot
 
 with trainable flow weights and a trainable log-std; S, D and x_ref are fixed.
+
+For a float64 policy the mean force (flow, phi(x_ref) in the same batched pass, and the
+controller law) is one compiled call per batch, with the analytic vector-Jacobian product as its
+backward (``flow_kernels``); ``mean_force_reference`` is the same function in plain torch ops.
 """
 
 from __future__ import annotations
@@ -14,18 +18,50 @@ import math
 import numpy as np
 import torch
 from torch import nn
+from torch.autograd.function import FunctionCtx, once_differentiable
 from torch.distributions import Normal
 
 from nf_controller_node.flow_spec import FlowArchitecture
 from nf_controller_node.policy_params import PolicyParameters
 
 from .flow import RealNVPFlow
+from .flow_kernels import force_backward, force_forward
 
 
 def _matrix(values: np.ndarray | torch.Tensor | None, dim: int, dtype: torch.dtype) -> torch.Tensor:
     if values is None:
         return torch.eye(dim, dtype=dtype)
     return torch.as_tensor(np.asarray(values, dtype=np.float64).reshape(dim, dim), dtype=dtype).clone()
+
+
+class _CompiledMeanForce(torch.autograd.Function):
+    """``NFPolicy.mean_force`` by the compiled kernels; backward (to x and the flow weights) is their VJP."""
+
+    @staticmethod
+    def forward(
+        ctx: FunctionCtx, policy: NFPolicy, keep: bool, x: torch.Tensor, xdot: torch.Tensor, *params: torch.Tensor
+    ) -> torch.Tensor:
+        flow = policy.flow
+        w = flow.kernel_weights(params)
+        S, D = policy.S.numpy(), policy.D.numpy()
+        u, jac, wv, saved = force_forward(
+            x.detach().contiguous().numpy(), xdot.detach().contiguous().numpy(), policy.x_ref.numpy(), S, D,
+            w, flow.table, flow.arch.n_hidden, flow.activation_code, keep,
+        )
+        if keep:  # private copies, safe from in-place updates (xdot: version-checked by autograd)
+            ctx.save_for_backward(xdot)
+            ctx.flow, ctx.w, ctx.S, ctx.D, ctx.jac, ctx.wv, ctx.saved = flow, w, S.copy(), D.copy(), jac, wv, saved
+        return torch.from_numpy(u)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx: FunctionCtx, u_bar: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        (xdot,) = ctx.saved_tensors
+        flow = ctx.flow
+        gw, x_bar = force_backward(u_bar.contiguous().numpy(), xdot.detach().contiguous().numpy(), ctx.S, ctx.D,
+                                   ctx.jac, ctx.wv, ctx.w, flow.table, flow.arch.n_hidden, ctx.saved)
+        return (None, None, torch.from_numpy(x_bar) if ctx.needs_input_grad[2] else None, None,
+                *flow.split_flat_gradient(gw))
 
 
 class NFPolicy(nn.Module):
@@ -75,13 +111,25 @@ class NFPolicy(nn.Module):
         """Deterministic controller u for batches x, xdot of shape (N, dim) (or (dim,)); returns (N, dim)."""
         squeeze = torch.as_tensor(x).dim() == 1
         x, xdot = self._batch(x), self._batch(xdot)
-        phi, J = self.flow.phi_and_jacobian(x)
-        err = phi - self.phi_ref()
+        if self.flow.compiled() and not any(t.requires_grad for t in (xdot, self.S, self.D, self.x_ref)):
+            params = self.flow.param_list()
+            keep = torch.is_grad_enabled() and (x.requires_grad or any(p.requires_grad for p in params))
+            u = _CompiledMeanForce.apply(self, keep, x, xdot, *params)
+        else:
+            u = self.mean_force_reference(x, xdot)
+        return u[0] if squeeze else u
+
+    def mean_force_reference(self, x: torch.Tensor, xdot: torch.Tensor) -> torch.Tensor:
+        """``mean_force`` for batches (N, dim) in plain torch ops (any dtype, any order of derivatives)."""
+        # phi(x_ref) in the same batched pass as the states
+        phi_all, J_all = self.flow.phi_and_jacobian_autograd(torch.cat([x, self.x_ref.unsqueeze(0)]))
+        n = x.shape[0]
+        err = phi_all[:n] - phi_all[n]
+        J = J_all[:n]
         # w = S e + D J xdot;  u = -J^T w
         Jv = torch.einsum("nij,nj->ni", J, xdot)
         w = err @ self.S.T + Jv @ self.D.T
-        u = -torch.einsum("nji,nj->ni", J, w)
-        return u[0] if squeeze else u
+        return -torch.einsum("nji,nj->ni", J, w)
 
     def std(self) -> torch.Tensor:
         """Standard deviation of the action noise, shape (1,) or (dim,)."""

@@ -35,6 +35,7 @@ from .ppo import (
     ValueNetwork,
     compute_gae,
     discounted_returns,
+    make_optimizer,
     normalize_advantages,
     ppo_update,
 )
@@ -109,7 +110,7 @@ class Trainer:
         if cfg.baseline == "value":
             self.value_net = ValueNetwork(2 * cfg.dim, cfg.value_hidden, seed=cfg.seed)
             params += list(self.value_net.parameters())
-        self.optimizer = torch.optim.Adam(params, lr=cfg.learning_rate)
+        self.optimizer = make_optimizer(params, cfg.learning_rate)
         self.settings = PPOSettings(cfg.update_epochs, cfg.minibatch_size, cfg.clip_coef, cfg.vf_coef,
                                     cfg.max_grad_norm, cfg.target_kl)
         self.rng = np.random.default_rng(cfg.seed)
