@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from ros_testing import REPO, ros_env
+from ros_testing import REPO, allocate_domain_id, ros_env
 
 INSTALL = REPO / "ros2_ws" / "install"
 PYTHON_PACKAGES = ("nf_controller_node", "learner_node", "sim_bridge_node")
@@ -41,7 +41,8 @@ def test_executables_in_lib_pkg_and_runnable(pkg):
     for exe in scripts:
         path = INSTALL / pkg / "lib" / pkg / exe
         assert path.is_file() and os.access(path, os.X_OK), f"{path} missing or not executable"
-        done = subprocess.run([str(path), "--help"], env=ros_env(0), capture_output=True, text=True, timeout=120)
+        env = ros_env(allocate_domain_id())
+        done = subprocess.run([str(path), "--help"], env=env, capture_output=True, text=True, timeout=120)
         assert done.returncode == 0, f"{exe} --help failed:\n{done.stderr[-2000:]}"
         assert "usage" in done.stdout.lower()
 
