@@ -12,6 +12,7 @@ settle (still monotone in V; see test_large_weights_never_raise_V).
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor
 
@@ -32,6 +33,12 @@ MASS = 2.0  # kg
 WORKERS = max(1, min(2, os.cpu_count() or 1))
 
 
+def _pool() -> ProcessPoolExecutor:
+    """Worker processes started fresh ("spawn"): forking a process that already runs torch, numba
+    and DDS threads can crash the child (seen as a segfault while numba compiled in a fork)."""
+    return ProcessPoolExecutor(WORKERS, mp_context=multiprocessing.get_context("spawn"))
+
+
 def _evaluator(seed: int, scale: float, stiffness: float = 50.0, damping: float = 20.0) -> FlowEvaluator:
     w = init_flow_weights(ARCH, np.random.default_rng(seed), scale)
     return FlowEvaluator(ARCH, w, stiffness * np.eye(3), damping * np.eye(3), X_REF)
@@ -39,7 +46,8 @@ def _evaluator(seed: int, scale: float, stiffness: float = 50.0, damping: float 
 
 def test_point_mass_converges_and_V_never_rises():
     jobs = [(ARCH, seed, scale, 50.0, 20.0, X_REF, MASS, N_STARTS) for seed, scale in FLOWS]
-    with ProcessPoolExecutor(WORKERS) as pool:
+    point_mass.run(_evaluator(0, 1.0), X_REF + 0.1, MASS, duration=0.01)  # compile once, workers load the cache
+    with _pool() as pool:
         failures = [f for chunk in pool.map(point_mass.check_flow, jobs) for f in chunk]
     assert not failures, f"{len(failures)} of {len(FLOWS) * N_STARTS} failed, e.g. {failures[:5]}"
 
@@ -80,7 +88,7 @@ def _chunks():
 def test_panda_free_space_converges_and_V_never_rises():
     from panda_loop import run_flow
 
-    with ProcessPoolExecutor(WORKERS) as pool:
+    with _pool() as pool:
         results = [r for chunk in pool.map(run_flow, _chunks()) for r in chunk]
     assert len(results) == len(FLOWS) * N_STARTS
     bad = [r for r in results if r["distance"] > 1e-3 or r["fault"] or r["nan_torque"]
