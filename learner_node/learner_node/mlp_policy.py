@@ -21,14 +21,15 @@ import numba
 import numpy as np
 import torch
 from torch import nn
-from torch.distributions import Normal
+
+from .gaussian import GaussianForceMixin
 
 ACTIVATION_CODES = {"tanh": 0, "gelu": 1}
 OUTPUT_SCALE = 0.01  # the output layer starts this much smaller than torch's default: u ~ 0 at first
 _SQRT_HALF = math.sqrt(0.5)
 
 
-class MLPPolicy(nn.Module):
+class MLPPolicy(GaussianForceMixin, nn.Module):
     """Gaussian MLP policy over task-space forces: mean MLP([x - x_ref, xdot]), trainable shared log-std."""
 
     def __init__(
@@ -89,19 +90,6 @@ class MLPPolicy(nn.Module):
         h = self._act(self.layers[0](h))
         h = self._act(self.layers[1](h))
         return self.layers[2](h)
-
-    def std(self) -> torch.Tensor:
-        """Standard deviation of the action noise, shape (1,) or (dim,)."""
-        return torch.exp(self.log_std)
-
-    def distribution(self, x: torch.Tensor, xdot: torch.Tensor) -> Normal:
-        """Gaussian action distribution with mean ``mean_force`` and diagonal std."""
-        mean = self.mean_force(x, xdot)
-        return Normal(mean, self.std().expand_as(mean))
-
-    def log_prob(self, x: torch.Tensor, xdot: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Log-density of ``action`` summed over action dimensions; shape (N,) (or scalar if unbatched)."""
-        return self.distribution(x, xdot).log_prob(torch.as_tensor(action, dtype=self.dtype)).sum(-1)
 
     def weights(self) -> list[np.ndarray]:
         """[W1, b1, W2, b2, W3, b3] as float64 numpy copies (W is (out, in))."""

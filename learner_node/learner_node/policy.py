@@ -19,13 +19,13 @@ import numpy as np
 import torch
 from torch import nn
 from torch.autograd.function import FunctionCtx, once_differentiable
-from torch.distributions import Normal
 
 from nf_controller_node.flow_spec import FlowArchitecture
 from nf_controller_node.policy_params import PolicyParameters
 
 from .flow import RealNVPFlow
 from .flow_kernels import force_backward, force_forward
+from .gaussian import GaussianForceMixin
 
 
 def _matrix(values: np.ndarray | torch.Tensor | None, dim: int, dtype: torch.dtype) -> torch.Tensor:
@@ -64,7 +64,7 @@ class _CompiledMeanForce(torch.autograd.Function):
                 *flow.split_flat_gradient(gw))
 
 
-class NFPolicy(nn.Module):
+class NFPolicy(GaussianForceMixin, nn.Module):
     """Flow controller policy: trainable flow and log-std, fixed SPD S and D, fixed goal x_ref."""
 
     def __init__(
@@ -130,20 +130,6 @@ class NFPolicy(nn.Module):
         Jv = torch.einsum("nij,nj->ni", J, xdot)
         w = err @ self.S.T + Jv @ self.D.T
         return -torch.einsum("nji,nj->ni", J, w)
-
-    def std(self) -> torch.Tensor:
-        """Standard deviation of the action noise, shape (1,) or (dim,)."""
-        return torch.exp(self.log_std)
-
-    def distribution(self, x: torch.Tensor, xdot: torch.Tensor) -> Normal:
-        """Gaussian action distribution with mean ``mean_force`` and diagonal std."""
-        mean = self.mean_force(x, xdot)
-        return Normal(mean, self.std().expand_as(mean))
-
-    def log_prob(self, x: torch.Tensor, xdot: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Log-density of ``action`` summed over action dimensions; shape (N,) (or scalar if unbatched)."""
-        dist = self.distribution(x, xdot)
-        return dist.log_prob(torch.as_tensor(action, dtype=self.dtype)).sum(-1)
 
     def lyapunov_potential(self, x: torch.Tensor) -> torch.Tensor:
         """1/2 (phi(x)-phi(x_ref))^T S (phi(x)-phi(x_ref)) for a batch x; shape (N,) (or scalar)."""
