@@ -65,7 +65,7 @@ def reset_response() -> ResetSim.Response:
 
 
 def episode_goal() -> RunEpisode.Goal:
-    return RunEpisode.Goal(policy_version=7, seed=-1, duration=5.0, deterministic=True)
+    return RunEpisode.Goal(policy_version=7, seed=-1, noise_seed=11, duration=5.0, deterministic=True)
 
 
 def episode_feedback() -> RunEpisode.Feedback:

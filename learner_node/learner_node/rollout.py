@@ -28,47 +28,13 @@ import numpy as np
 from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
+from nf_controller_node.reward import REWARD_TERMS, RewardWeights, gaussian_log_prob, reward_terms
 from sim_bridge_node.env import InsertionEnv
 from sim_bridge_node.held_parts import PEG
 
 from .config import TrainConfig
 
-REWARD_TERMS = ("distance", "log_distance", "velocity", "action")
 BLOCK_AXES = np.array([0, 2])  # the block moves in the world x-z plane
-_LOG_2PI = math.log(2.0 * math.pi)
-
-
-@dataclass(frozen=True)
-class RewardWeights:
-    """Weights of the reward terms (see the module docstring)."""
-
-    w: float = 1.0  # squared distance, 1/m^2
-    v: float = 2.0  # log-distance
-    a: float = 1e-5  # log offset, m^2
-    velocity: float = 0.1  # squared speed, 1/(m/s)^2
-    action: float = 1e-3  # squared force, 1/N^2
-
-    @classmethod
-    def from_config(cls, cfg: TrainConfig) -> RewardWeights:
-        """The reward weights of a training config."""
-        return cls(cfg.reward_w, cfg.reward_v, cfg.reward_a, cfg.reward_velocity, cfg.reward_action)
-
-
-def reward_terms(d: np.ndarray, xdot: np.ndarray, action: np.ndarray, weights: RewardWeights) -> dict[str, np.ndarray]:
-    """The reward's terms (each <= 0) for rows of distance vectors d (m), velocities (m/s), actions (N)."""
-    d2 = np.sum(np.square(d), axis=-1)
-    return {
-        "distance": -weights.w * d2,
-        "log_distance": -weights.v * (np.log(d2 + weights.a) - math.log(weights.a)),
-        "velocity": -weights.velocity * np.sum(np.square(xdot), axis=-1),
-        "action": -weights.action * np.sum(np.square(action), axis=-1),
-    }
-
-
-def gaussian_log_prob(noise: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """log N(noise; 0, diag sigma^2) summed over the last axis."""
-    z = noise / sigma
-    return np.sum(-0.5 * z * z - np.log(sigma) - 0.5 * _LOG_2PI, axis=-1)
 
 
 @dataclass

@@ -118,14 +118,22 @@ class Trainer:
         self.history: list[dict[str, float]] = []
 
     # ------------------------------------------------------------------ one iteration
+    def episode_seeds(self) -> list[tuple[int, int]]:
+        """(start seed, noise seed) of each rollout of the next iteration, from the run's generator.
+
+        The ROS learner draws its episodes' seeds here too, so a run over ROS sees the same
+        starts and the same noise as an in-process run with the same config.
+        """
+        seeds = self.rng.integers(0, EVAL_SEED_BASE, size=(self.cfg.rollouts_per_iter, 2))
+        return [(int(start), int(noise)) for start, noise in seeds]
+
     def collect(self) -> list[EpisodeRecord]:
         """``rollouts_per_iter`` episodes of the current stochastic policy."""
         evaluator = make_evaluator(self.policy)
         sigma = policy_sigma(self.policy)
-        seeds = self.rng.integers(0, EVAL_SEED_BASE, size=(self.cfg.rollouts_per_iter, 2))
         return [
-            self.runner.run_episode(evaluator, sigma, int(start), np.random.default_rng(int(noise)))
-            for start, noise in seeds
+            self.runner.run_episode(evaluator, sigma, start, np.random.default_rng(noise))
+            for start, noise in self.episode_seeds()
         ]
 
     def make_batch(self, episodes: list[EpisodeRecord]) -> PPOBatch:
@@ -161,6 +169,11 @@ class Trainer:
         """Collect, update, record one metrics row (returned and appended to ``history``)."""
         t0 = time.perf_counter()
         episodes = self.collect()
+        return self.update(episodes, time.perf_counter() - t0)
+
+    def update(self, episodes: list[EpisodeRecord], rollout_seconds: float) -> dict[str, float]:
+        """One PPO update from an iteration's episodes (collected here or streamed over ROS) and its
+        metrics row (returned and appended to ``history``); ``iteration`` advances by one."""
         t1 = time.perf_counter()
         batch = self.make_batch(episodes)
         stats = ppo_update(self.policy, self.optimizer, batch, self.settings, self.rng, self.value_net)
@@ -171,9 +184,9 @@ class Trainer:
         row["sigma"] = float(policy_sigma(self.policy).mean())
         row.update(stats)
         row["decisions"] = float(len(batch))
-        row["rollout_seconds"] = t1 - t0
+        row["rollout_seconds"] = rollout_seconds
         row["update_seconds"] = t2 - t1
-        row["wall_seconds"] = t2 - t0
+        row["wall_seconds"] = rollout_seconds + (t2 - t1)
         self.history.append(row)
         return row
 
