@@ -15,6 +15,7 @@ import numpy as np
 
 from .arm_model import ArmModel
 from .controller import FlowController
+from .episode import EpisodeRun
 from .flow_eval import FlowEvaluator
 from .flow_spec import FlowArchitecture
 from .lyapunov import LyapunovMonitor
@@ -132,6 +133,12 @@ class ControlLoop:
         self.policy: PolicyParameters | None = None
         self._pending: tuple[PolicyParameters, FlowEvaluator] | None = None
         self.episode_active = False
+        self.episode: EpisodeRun | None = None
+        self._episode_from = 0  # ns: the episode starts at the first state stamped at or after this
+        self._episode_last = -1  # ns: stamp of the last state the episode consumed
+        self._episode_eps = np.zeros(3)
+        self._u_mean = np.zeros(3)
+        self.depth = float("nan")  # latest insertion depth from the simulator's task status (m), if any
         self.latency = LatencyStats()
         self.monitor = LyapunovMonitor(dt=0.02, tolerance=1e-3, time_constant=0.1)
         self.n = arm.nq
@@ -218,11 +225,30 @@ class ControlLoop:
         self._pending = None
         self.monitor.reset()
 
-    def end_episode(self) -> None:
-        """Mark the episode over and install parameters that arrived during it."""
+    def start_episode(self, run: EpisodeRun, first_stamp_ns: int = 0) -> None:
+        """Run ``run`` from the first joint state stamped at or after ``first_stamp_ns`` (the reset state).
+
+        Raises ``ValueError`` without a policy, with a latched fault or while another episode runs.
+        """
+        if self.policy is None:
+            raise ValueError(NO_POLICY)
+        if self.controller.fault:
+            raise ValueError(f"safe hold: {self.controller.fault}")
+        if self.episode is not None:
+            raise ValueError("an episode is already running")
+        self.episode = run
+        self._episode_from = int(first_stamp_ns)
+        self._episode_last = -1
+        self.episode_active = True
+
+    def end_episode(self) -> EpisodeRun | None:
+        """Mark the episode over (done or aborted), install parameters that arrived during it, and
+        return its record."""
+        run, self.episode = self.episode, None
         self.episode_active = False
         if self._pending is not None:
             self._install(*self._pending)
+        return run
 
     # ------------------------------------------------------------------ the 1 kHz step
     def on_joint_state(self, names: Sequence[str], position: Sequence[float], velocity: Sequence[float],
@@ -253,7 +279,11 @@ class ControlLoop:
             reason = f"joint state not finite (NaN/Inf) for {which}"
             return self._hold_last(), reason if self._latch(reason) else ""
         had_fault = ctrl.fault
-        tau = ctrl.hold(q, dq) if self.policy is None else ctrl.step(q, dq)
+        run = self.episode
+        if run is not None and stamp_ns >= self._episode_from and not had_fault:
+            tau = self._episode_step(run, q, dq, stamp_ns)
+        else:
+            tau = ctrl.hold(q, dq) if self.policy is None else ctrl.step(q, dq)
         new = ""
         if ctrl.fault and not had_fault:  # the controller latched (q out of range, flow not finite, ...)
             self.faults += 1
@@ -261,6 +291,26 @@ class ControlLoop:
         self.q[:], self.dq[:] = q, dq
         self.have_state = True
         return tau, new
+
+    def _episode_step(self, run: EpisodeRun, q: np.ndarray, dq: np.ndarray, stamp_ns: int) -> np.ndarray:
+        """One step of a running episode: held noise, then the record (a repeated state, i.e. a
+        lockstep resend, is answered with the same noise and not recorded again)."""
+        ctrl = self.controller
+        new = stamp_ns > self._episode_last
+        if new:
+            if run.steps == 0:
+                ctrl.reset_rate_limit()  # the world was just reset: no rate limit on the first command
+            self._episode_eps = run.noise()
+        tau = ctrl.step(q, dq, self._episode_eps)
+        if new and not ctrl.fault:
+            arm = ctrl.arm
+            u_mean = None
+            if run.steps % run.P == 0 and run.steps < run.K * run.P:
+                u_mean = ctrl.evaluator.force(arm.x, ctrl.xdot, self._u_mean)
+            diff = tau - arm.g
+            run.record(arm.x, ctrl.xdot, u_mean, self.depth, float(np.sqrt(diff @ diff)))
+            self._episode_last = stamp_ns
+        return tau
 
     def _hold_last(self) -> np.ndarray:
         """Safe hold when the message itself is unusable: gravity of the last valid state, no damping."""

@@ -1,0 +1,182 @@
+"""ROS-free core of one RL episode run by the controller: held noise, the per-decision record,
+the reward, and the rollout cut into chunks. Mirrors ``learner_node.rollout`` exactly.
+
+The controller consumes one joint state per millisecond. An episode of K decisions of P
+milliseconds uses K*P + 1 states: at state j = kP (k < K) the noise eps_k ~ N(0, sigma^2) is
+drawn from ``numpy.random.default_rng(noise_seed)`` and held for P steps, and the decision's
+(x, xdot, u_mean) are recorded; the state after the period closes decision k's reward. The last
+state (j = KP) closes the last decision and ends the episode (it is answered without noise).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .reward import REWARD_TERMS, RewardWeights, gaussian_log_prob, reward_terms
+
+
+@dataclass(frozen=True)
+class EpisodeSpec:
+    """What one episode runs: length, decision period, noise, goal and reward weights."""
+
+    episode_id: int
+    policy_version: int
+    duration: float  # s
+    decision_period: float  # s
+    control_period: float  # s, one joint state per step
+    sigma: np.ndarray | None  # (d,) noise std in N; None: deterministic
+    noise_seed: int
+    x_goal: np.ndarray  # (d,) m, the reward's goal
+    weights: RewardWeights = field(default_factory=RewardWeights)
+    chunk_decisions: int = 100  # decisions per streamed chunk
+
+    @property
+    def steps_per_decision(self) -> int:
+        """P, control steps per decision."""
+        return max(1, round(self.decision_period / self.control_period))
+
+    @property
+    def decisions(self) -> int:
+        """K, decisions per episode."""
+        return max(1, round(self.duration / self.decision_period))
+
+    def check(self) -> None:
+        """Raise ``ValueError`` for values an episode cannot run with."""
+        for name in ("duration", "decision_period", "control_period"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} must be a positive number of seconds, got {value}")
+        if self.decision_period < self.control_period:
+            raise ValueError(f"decision_period {self.decision_period} s is shorter than the control period")
+        if self.duration > 3600.0:
+            raise ValueError(f"duration {self.duration} s is longer than an hour")
+        if self.chunk_decisions < 1:
+            raise ValueError(f"chunk_decisions must be >= 1, got {self.chunk_decisions}")
+        if self.sigma is not None and not (np.all(np.isfinite(self.sigma)) and np.all(self.sigma > 0.0)):
+            raise ValueError(f"noise std must be finite and > 0, got {self.sigma}")
+        self.weights.check()
+
+
+@dataclass
+class Chunk:
+    """Decisions [start, stop) of an episode, ready for an ``nf_msgs/RolloutChunk``."""
+
+    seq: int
+    final: bool
+    n_chunks: int  # valid when final
+    t: np.ndarray
+    x: np.ndarray
+    xdot: np.ndarray
+    u_mean: np.ndarray
+    action: np.ndarray
+    log_prob: np.ndarray
+    reward: np.ndarray
+    depth: np.ndarray
+
+
+class EpisodeRun:
+    """State machine of one episode; the control loop calls ``noise`` and ``record`` per state."""
+
+    def __init__(self, spec: EpisodeSpec) -> None:
+        spec.check()
+        self.spec = spec
+        d = spec.x_goal.shape[0]
+        self.K, self.P, self.d = spec.decisions, spec.steps_per_decision, d
+        K = self.K
+        self.x, self.xdot, self.u_mean = np.zeros((K, d)), np.zeros((K, d)), np.zeros((K, d))
+        self.eps = np.zeros((K, d))
+        self.reward = np.zeros(K)
+        self.terms = {n: np.zeros(K) for n in REWARD_TERMS}
+        self.depth = np.full(K, np.nan)
+        self.steps = 0  # states consumed
+        self.closed = 0  # decisions whose reward is known
+        self.chunks_sent = 0
+        self.torque_sum = 0.0
+        self._rng = np.random.default_rng(spec.noise_seed) if spec.sigma is not None else None
+        self._zero = np.zeros(d)
+
+    @property
+    def done(self) -> bool:
+        """All K decisions closed."""
+        return self.closed >= self.K
+
+    @property
+    def t(self) -> float:
+        """Time into the episode, s."""
+        return self.steps * self.spec.control_period
+
+    def noise(self) -> np.ndarray:
+        """The held noise for the state about to be answered (draws at a decision's first step)."""
+        j = self.steps
+        if j >= self.K * self.P or self._rng is None:
+            return self._zero
+        k, r = divmod(j, self.P)
+        if r == 0:
+            self.eps[k] = self.spec.sigma * self._rng.standard_normal(self.d)
+        return self.eps[k]
+
+    def record(self, x: np.ndarray, xdot: np.ndarray, u_mean: np.ndarray | None, depth: float,
+               torque_norm: float) -> None:
+        """Account the state just answered: position x (m), velocity xdot, deterministic force
+        ``u_mean`` (only needed at a decision's first step), the latest insertion depth (m, NaN if
+        unknown) and |tau - g| (Nm) of the command sent."""
+        j = self.steps
+        k, r = divmod(j, self.P)
+        if r == 0 and k > 0:  # the state after decision k-1's period
+            self._close(k - 1, x, xdot, depth)
+        if k < self.K:
+            if r == 0:
+                self.x[k], self.xdot[k] = x, xdot
+                self.u_mean[k] = u_mean
+            self.torque_sum += torque_norm
+        self.steps += 1
+
+    def _close(self, k: int, x: np.ndarray, xdot: np.ndarray, depth: float) -> None:
+        action = self.u_mean[k] + self.eps[k]
+        terms = reward_terms(x - self.spec.x_goal, xdot, action, self.spec.weights)
+        for name in REWARD_TERMS:
+            self.terms[name][k] = terms[name]
+        self.reward[k] = sum(float(terms[n]) for n in REWARD_TERMS)
+        self.depth[k] = depth
+        self.closed = k + 1
+
+    def ready_chunks(self) -> list[Chunk]:
+        """Chunks whose decisions are all closed and not yet handed out (the last one is final)."""
+        out = []
+        C = self.spec.chunk_decisions
+        n_total = -(-self.K // C)
+        while self.chunks_sent < n_total:
+            start = self.chunks_sent * C
+            stop = min(start + C, self.K)
+            if self.closed < stop:
+                break
+            final = self.chunks_sent == n_total - 1
+            out.append(self._chunk(self.chunks_sent, start, stop, final, n_total))
+            self.chunks_sent += 1
+        return out
+
+    def _chunk(self, seq: int, start: int, stop: int, final: bool, n_total: int) -> Chunk:
+        s = slice(start, stop)
+        action = self.u_mean[s] + self.eps[s]
+        if self.spec.sigma is None:
+            log_prob = np.zeros(stop - start)
+        else:
+            log_prob = gaussian_log_prob(self.eps[s], self.spec.sigma)
+        return Chunk(seq=seq, final=final, n_chunks=n_total if final else 0,
+                     t=np.arange(start, stop) * self.spec.decision_period, x=self.x[s].copy(),
+                     xdot=self.xdot[s].copy(), u_mean=self.u_mean[s].copy(), action=action,
+                     log_prob=log_prob, reward=self.reward[s].copy(), depth=self.depth[s].copy())
+
+    @property
+    def episode_return(self) -> float:
+        """Sum of the closed decisions' rewards."""
+        return float(self.reward[: self.closed].sum())
+
+    @property
+    def mean_torque(self) -> float:
+        """Mean |tau - g| over the episode's commands, Nm."""
+        n = min(self.steps, self.K * self.P)
+        return self.torque_sum / n if n else 0.0

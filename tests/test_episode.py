@@ -1,0 +1,104 @@
+"""The controller's episode core (ControlLoop + EpisodeRun, what the node runs over ROS) against the
+in-process rollout of the trainer: same seeds -> the same decisions, actions and rewards."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from learner_node.config import TrainConfig
+from learner_node.trainer import Trainer, make_evaluator, policy_sigma
+from nf_controller_node import panda_spec
+from nf_controller_node.arm_model import ArmModel
+from nf_controller_node.control_loop import ControlLoop
+from nf_controller_node.episode import EpisodeRun, EpisodeSpec
+from nf_controller_node.reward import RewardWeights
+from sim_bridge_node.env import InsertionEnv
+
+NAMES = list(panda_spec.JOINT_NAMES)
+
+
+CLOCK = [10_000_000]  # ns, the simulated clock shared by the tests of one loop (never runs backwards)
+
+
+def run_loop_episode(loop: ControlLoop, env: InsertionEnv, spec: EpisodeSpec, start_seed: int) -> EpisodeRun:
+    """Drive ``loop`` like the lockstep node does: one state per step, stamps 1 ms apart."""
+    env.reset(seed=start_seed)
+    run = EpisodeRun(spec)
+    stamp = CLOCK[0] = CLOCK[0] + 1_000_000_000
+    loop.start_episode(run, stamp)
+    while not run.done:
+        loop.depth = env.insertion_depth
+        tau, fault = loop.on_joint_state(NAMES, env.q, env.dq, stamp, 0.0)
+        assert not fault
+        env.step(tau.copy())
+        stamp += 1_000_000
+    assert loop.end_episode() is run
+    return run
+
+
+@pytest.fixture(scope="module")
+def gear_setup():
+    cfg = TrainConfig.from_sources("config/gear.yaml", {"episode_seconds": 0.3, "rollouts_per_iter": 2})
+    trainer = Trainer(cfg)
+    params = trainer.policy.to_params(version=1)
+    loop = ControlLoop(ArmModel(part=panda_spec.GEAR_PART))
+    loop.set_policy(params)
+    return cfg, trainer, loop, InsertionEnv("gear")
+
+
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_loop_episode_matches_in_process_rollout(gear_setup, deterministic):
+    cfg, trainer, loop, env = gear_setup
+    sigma = None if deterministic else policy_sigma(trainer.policy)
+    start, noise = 1234, 99
+    ref = trainer.runner.run_episode(make_evaluator(trainer.policy), sigma, start,
+                                     None if deterministic else np.random.default_rng(noise))
+    spec = EpisodeSpec(episode_id=1, policy_version=1, duration=cfg.episode_seconds,
+                       decision_period=cfg.decision_period, control_period=0.001, sigma=sigma,
+                       noise_seed=noise, x_goal=trainer.x_ref, weights=RewardWeights.from_config(cfg),
+                       chunk_decisions=7)
+    run = run_loop_episode(loop, env, spec, start)
+    assert run.K == len(ref.reward) == 30
+    np.testing.assert_allclose(run.x, ref.x, atol=1e-12)
+    np.testing.assert_allclose(run.xdot, ref.xdot, atol=1e-12)
+    np.testing.assert_allclose(run.u_mean, ref.u_mean, atol=1e-9)
+    np.testing.assert_allclose(run.u_mean + run.eps, ref.action, atol=1e-9)
+    np.testing.assert_allclose(run.reward, ref.reward, rtol=1e-9, atol=1e-9)
+    assert run.mean_torque == pytest.approx(ref.torque_norm, rel=1e-9)
+    chunks = run.ready_chunks()
+    assert [c.seq for c in chunks] == [0, 1, 2, 3, 4]
+    assert [c.final for c in chunks] == [False] * 4 + [True] and chunks[-1].n_chunks == 5
+    np.testing.assert_allclose(np.concatenate([c.log_prob for c in chunks]), ref.log_prob, atol=1e-9)
+    np.testing.assert_allclose(np.concatenate([c.t for c in chunks]), ref.t)
+    assert run.ready_chunks() == []  # handed out once
+
+
+def test_resent_state_is_answered_but_not_recorded_twice(gear_setup):
+    _cfg, trainer, loop, env = gear_setup
+    env.reset(seed=5)
+    spec = EpisodeSpec(episode_id=2, policy_version=1, duration=0.02, decision_period=0.01, control_period=0.001,
+                       sigma=np.full(3, 2.0), noise_seed=3, x_goal=trainer.x_ref)
+    run = EpisodeRun(spec)
+    stamp = CLOCK[0] = CLOCK[0] + 1_000_000_000
+    loop.start_episode(run, stamp)
+    tau1, _ = loop.on_joint_state(NAMES, env.q, env.dq, stamp, 0.0)
+    tau1 = tau1.copy()
+    eps = run.eps[0].copy()
+    tau2, _ = loop.on_joint_state(NAMES, env.q, env.dq, stamp, 0.0)  # the lockstep resend of the same state
+    assert run.steps == 1 and np.array_equal(run.eps[0], eps)
+    np.testing.assert_allclose(tau2, tau1, atol=1e-12)
+    loop.end_episode()
+
+
+def test_episode_refused_without_policy_and_bad_specs():
+    loop = ControlLoop(ArmModel(part=panda_spec.GEAR_PART))
+    spec = EpisodeSpec(episode_id=1, policy_version=0, duration=1.0, decision_period=0.01, control_period=0.001,
+                       sigma=None, noise_seed=0, x_goal=np.zeros(3))
+    with pytest.raises(ValueError, match="policy"):
+        loop.start_episode(EpisodeRun(spec))
+    for bad in ({"duration": float("nan")}, {"decision_period": 0.0001}, {"sigma": np.array([1.0, -1.0, 1.0])},
+                {"chunk_decisions": 0}):
+        kwargs = {**spec.__dict__, **bad}
+        with pytest.raises(ValueError):
+            EpisodeRun(EpisodeSpec(**kwargs))
