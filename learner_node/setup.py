@@ -25,6 +25,7 @@ setup(
         "console_scripts": [
             "flow_selfcheck = learner_node.selfcheck:main",
             "train = learner_node.train_cli:main",
+            "learner = learner_node.node:main",
         ],
     },
 )

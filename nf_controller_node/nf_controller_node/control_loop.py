@@ -26,6 +26,10 @@ from .torque_law import TorqueLawConfig
 # ControllerStatus modes (same numbers as nf_msgs/msg/ControllerStatus).
 MODE_IDLE, MODE_RUNNING, MODE_SAFE_HOLD, MODE_RESETTING = 0, 1, 2, 3
 NO_POLICY = "waiting for policy parameters"
+# Between episodes: "hold" answers every state with the safe hold (gravity + joint damping; for
+# realtime drivers and hardware), "policy" runs the deterministic controller, "pause" does not
+# answer at all (a lockstep simulator then waits instead of burning CPU during the PPO update).
+IDLE_MODES = ("hold", "policy", "pause")
 
 
 class JointStateError(ValueError):
@@ -110,9 +114,15 @@ class LoopConfig:
     deadline: float = 0.001  # a step taking longer than this is a deadline miss
     max_consecutive_misses: int = 20  # this many misses in a row latch the safe hold (0: never)
     state_timeout: float = 0.0  # realtime use: no joint state for this long latches the safe hold (0: off)
+    idle_mode: str = "policy"  # between episodes: policy (deterministic controller) | hold | pause
 
     def check(self) -> None:
         """Raise ``ValueError`` naming the first bad value."""
+        if self.idle_mode not in IDLE_MODES:
+            raise ValueError(f"idle_mode must be one of {IDLE_MODES}, got {self.idle_mode!r}")
+        self._check_times()
+
+    def _check_times(self) -> None:
         if not self.deadline > 0.0:
             raise ValueError(f"deadline must be > 0 s, got {self.deadline}")
         if self.max_consecutive_misses < 0:
@@ -256,7 +266,8 @@ class ControlLoop:
         """Torque (Nm, controller joint order) for one joint state received at wall time ``now`` (s).
 
         Returns (torque, new_fault): ``new_fault`` is the reason when this state latched a fault.
-        The torque is an internal buffer: publish or copy it before the next call.
+        The torque is an internal buffer: publish or copy it before the next call. ``answers(stamp)``
+        says whether a state should be answered at all (``idle_mode`` "pause").
         """
         self.steps += 1
         self.last_state_time = now
@@ -282,8 +293,10 @@ class ControlLoop:
         run = self.episode
         if run is not None and stamp_ns >= self._episode_from and not had_fault:
             tau = self._episode_step(run, q, dq, stamp_ns)
+        elif self.policy is None or self.config.idle_mode == "hold":
+            tau = ctrl.hold(q, dq)
         else:
-            tau = ctrl.hold(q, dq) if self.policy is None else ctrl.step(q, dq)
+            tau = ctrl.step(q, dq)
         new = ""
         if ctrl.fault and not had_fault:  # the controller latched (q out of range, flow not finite, ...)
             self.faults += 1
@@ -311,6 +324,12 @@ class ControlLoop:
             run.record(arm.x, ctrl.xdot, u_mean, self.depth, float(np.sqrt(diff @ diff)))
             self._episode_last = stamp_ns
         return tau
+
+    def answers(self, stamp_ns: int) -> bool:
+        """False for a state that idle_mode "pause" leaves unanswered (no episode wants it)."""
+        if self.config.idle_mode != "pause":
+            return True
+        return self.episode is not None and stamp_ns >= self._episode_from
 
     def _hold_last(self) -> np.ndarray:
         """Safe hold when the message itself is unusable: gravity of the last valid state, no damping."""

@@ -74,6 +74,7 @@ class Chunk:
     action: np.ndarray
     log_prob: np.ndarray
     reward: np.ndarray
+    terms: np.ndarray  # (n, 4), REWARD_TERMS order
     depth: np.ndarray
 
 
@@ -168,7 +169,8 @@ class EpisodeRun:
         return Chunk(seq=seq, final=final, n_chunks=n_total if final else 0,
                      t=np.arange(start, stop) * self.spec.decision_period, x=self.x[s].copy(),
                      xdot=self.xdot[s].copy(), u_mean=self.u_mean[s].copy(), action=action,
-                     log_prob=log_prob, reward=self.reward[s].copy(), depth=self.depth[s].copy())
+                     log_prob=log_prob, reward=self.reward[s].copy(),
+                     terms=np.stack([self.terms[n][s] for n in REWARD_TERMS], axis=1), depth=self.depth[s].copy())
 
     @property
     def episode_return(self) -> float:

@@ -17,6 +17,9 @@ TASK_STATUS = "task_status"  # nf_msgs/TaskStatus (simulation only)
 CONTROLLER_STATUS = "controller_status"  # nf_msgs/ControllerStatus
 POLICY_PARAMETERS = "/policy_parameters"  # nf_msgs/PolicyParameters, one learner for every arm
 DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray
+ROLLOUTS = "rollouts"  # nf_msgs/RolloutChunk, controller -> learner
+RUN_EPISODE = "run_episode"  # nf_msgs/action/RunEpisode, served by the controller
+SIM_RESET = "sim_bridge/reset"  # nf_msgs/srv/ResetSim, served by the sim bridge
 
 STATE_STAMP_LABEL = "state_stamp_ns="
 

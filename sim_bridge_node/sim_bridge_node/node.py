@@ -230,9 +230,23 @@ class SimBridgeNode(Node):
             return response
         response.success = True
         response.q, response.x = obs.q.tolist(), obs.x.tolist()
-        self._publish_state()
+        response.stamp_ns = self.bridge.stamp_ns
         self._publish_task_status()
+        if self.lockstep:
+            # Publish the reset state 1 ms after the reply, so the controller knows where its
+            # episode starts before the state arrives (realtime: the next tick publishes it).
+            self._defer(0.001, self._publish_state)
         return response
+
+    def _defer(self, seconds: float, fn: object) -> None:
+        """Call ``fn`` once after ``seconds`` of wall time."""
+
+        def fire() -> None:
+            timer.cancel()
+            self.destroy_timer(timer)
+            fn()
+
+        timer = self.create_timer(seconds, fire)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -1,0 +1,270 @@
+"""learner_node: NF-PPO over ROS 2. Drives episodes through the controller's ``run_episode``
+action, assembles the streamed rollouts (``rollouts``), runs the trainer's PPO update and
+publishes the new policy on ``/policy_parameters`` (reliable, transient local, version =
+completed iterations).
+
+The training settings are the task's parameters file (the ``/**`` and ``learner_node``
+sections), exactly what ``train --config`` reads, so an in-process run and a run over ROS with
+the same file and seed draw the same starts and noise. ``out_dir`` gets the same metrics,
+checkpoint and evaluation files as ``train``; a restarted learner resumes from the checkpoint
+and repeats the interrupted iteration with the same seeds. Episodes that fail or arrive
+incomplete are reported and retried with the same seeds, then dropped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from nf_msgs.action import RunEpisode
+from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
+from nf_msgs.msg import RolloutChunk
+from rclpy.action import ActionClient
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+
+from nf_controller_node.topics import POLICY_PARAMETERS, ROLLOUTS, RUN_EPISODE
+
+from .config import TrainConfig
+from .rollout import EpisodeRecord
+from .ros_episodes import ChunkCollector, IncompleteEpisodeError, episode_from_chunks
+from .trainer import CHECKPOINT, EVAL_SEED_BASE, Trainer, _atomic_write, _json_float, episode_summary
+
+LOG = logging.getLogger("learner_node")
+POLICY_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+CHUNK_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+NODE_PARAMETERS = {  # learner_node's own settings besides TrainConfig's
+    "out_dir": "runs/ros",
+    "episode_timeout": 120.0,  # s of wall time for one episode (lockstep runs at a few x real time)
+    "episode_retries": 2,  # an incomplete episode is run again this often (same seeds), then dropped
+    "server_timeout": 60.0,  # s to wait for the controller's action server
+}
+_FIELDS = {f for f in TrainConfig.__dataclass_fields__}
+
+
+class EpisodeFailedError(RuntimeError):
+    """An episode the controller did not complete, or whose rollout did not fully arrive."""
+
+
+class LearnerNode(Node):
+    """The ROS side of the learner: the action client, the chunk subscription, the policy publisher."""
+
+    def __init__(self) -> None:
+        super().__init__("learner_node", automatically_declare_parameters_from_overrides=True)
+        overrides: dict[str, Any] = {}
+        for name, param in self._parameters.items():
+            if name in _FIELDS:
+                overrides[name] = param.value
+        self.settings = {k: self.get_parameter_or(k, rclpy.Parameter(k, value=v)).value
+                         for k, v in NODE_PARAMETERS.items()}
+        self.cfg = TrainConfig.from_sources(None, overrides)
+        if self.cfg.policy != "nf":
+            raise ValueError("over ROS the controller runs the flow policy only (policy: nf); "
+                             "train the MLP baseline in process with `train --policy mlp`")
+        if self.cfg.task == "block":
+            raise ValueError("the block task has no arm; train it in process with `train --task block`")
+        self.chunks = ChunkCollector()
+        self._policy_pub = self.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, POLICY_QOS)
+        self.create_subscription(RolloutChunk, ROLLOUTS, self.chunks.add, CHUNK_QOS)
+        self._action = ActionClient(self, RunEpisode, RUN_EPISODE)
+        self.success_depth = 0.016  # m; set from the trainer's scene by RosTraining
+
+    def publish_policy(self, trainer: Trainer) -> int:
+        """Publish the trainer's policy as version = completed iterations; returns the version."""
+        version = trainer.iteration
+        msg = trainer.policy.to_params(version=version).fill_msg(PolicyParametersMsg())
+        self._policy_pub.publish(msg)
+        return version
+
+    def wait_for_server(self, timeout: float) -> bool:
+        """True once the controller's ``run_episode`` action server is up."""
+        return self._action.wait_for_server(timeout_sec=timeout)
+
+    def run_episode(self, version: int, start_seed: int | None, noise_seed: int, deterministic: bool,
+                    timeout: float) -> EpisodeRecord:
+        """One episode through the action; raises ``EpisodeFailedError`` (with the reason) if it is not usable."""
+        goal = RunEpisode.Goal(policy_version=version, seed=-1 if start_seed is None else int(start_seed),
+                               noise_seed=int(noise_seed), duration=self.cfg.episode_seconds,
+                               deterministic=deterministic)
+        sent = self._action.send_goal_async(goal)
+        deadline = time.monotonic() + timeout
+        if not _wait(sent, deadline):
+            raise EpisodeFailedError("the controller did not answer the episode goal")
+        handle = sent.result()
+        if not handle.accepted:
+            raise EpisodeFailedError("the controller rejected the episode goal")
+        done = handle.get_result_async()
+        if not _wait(done, deadline):
+            handle.cancel_goal_async()
+            raise EpisodeFailedError(f"episode not finished within {timeout:.0f} s")
+        result = done.result().result
+        if not result.completed:
+            self.chunks.pop(result.episode_id)
+            raise EpisodeFailedError(f"controller: {result.message}")
+        # the chunks travel on their own topic: give the last ones a moment
+        _wait_until(lambda: self.chunks.count(result.episode_id) >= result.n_chunks, time.monotonic() + 5.0)
+        try:
+            return episode_from_chunks(
+                self.chunks.pop(result.episode_id), success_depth=self.success_depth,
+                final_distance=result.final_distance, torque_norm=result.torque_norm,
+                final_success=result.success, start_seed=start_seed)
+        except IncompleteEpisodeError as exc:
+            raise EpisodeFailedError(f"rollout incomplete: {exc}") from None
+
+
+def _wait(future: Any, deadline: float) -> bool:
+    return _wait_until(future.done, deadline)
+
+
+def _wait_until(predicate: Any, deadline: float) -> bool:
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.002)
+    return True
+
+
+class RosTraining:
+    """The training loop over ROS (runs in the main thread while an executor spins the node)."""
+
+    def __init__(self, node: LearnerNode, stop: threading.Event) -> None:
+        self.node = node
+        self.stop = stop
+        self.cfg = node.cfg
+        self.out_dir = Path(node.settings["out_dir"])
+        self.trainer = Trainer(self.cfg, self.out_dir)
+        node.success_depth = self.trainer.runner.env.scene.success_depth
+        self.dropped = 0
+        checkpoint = self.out_dir / CHECKPOINT
+        if checkpoint.exists():
+            self.trainer.load_checkpoint(checkpoint)
+            LOG.info("resuming from %s after iteration %d", checkpoint, self.trainer.iteration)
+
+    def episode(self, version: int, start: int | None, noise: int, deterministic: bool) -> EpisodeRecord | None:
+        """One episode with retries; None when it was dropped (reported)."""
+        s = self.node.settings
+        for attempt in range(1 + int(s["episode_retries"])):
+            if self.stop.is_set():
+                return None
+            try:
+                return self.node.run_episode(version, start, noise, deterministic, s["episode_timeout"])
+            except EpisodeFailedError as exc:
+                LOG.error("episode (start seed %s, noise seed %s) failed, attempt %d: %s", start, noise,
+                          attempt + 1, exc)
+        self.dropped += 1
+        LOG.error("episode dropped after %d attempts (%d dropped so far)", 1 + int(s["episode_retries"]), self.dropped)
+        return None
+
+    def run(self) -> int:
+        """Train to ``cfg.iterations``, then evaluate; returns an exit code."""
+        cfg, trainer = self.cfg, self.trainer
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        _atomic_write(self.out_dir / "config.json", json.dumps(cfg.to_dict(), indent=1))
+        version = self.node.publish_policy(trainer)
+        if not self.node.wait_for_server(self.node.settings["server_timeout"]):
+            LOG.error("no run_episode action server (is nf_controller running?)")
+            return 1
+        LOG.info("NF-PPO over ROS on %s: iterations %d..%d, %d rollouts each, output %s", cfg.task,
+                 trainer.iteration + 1, cfg.iterations, cfg.rollouts_per_iter, self.out_dir)
+        while trainer.iteration < cfg.iterations and not self.stop.is_set():
+            t0 = time.perf_counter()
+            episodes = []
+            for i, (start, noise) in enumerate(trainer.episode_seeds()):
+                rec = self.episode(version, trainer.runner.start_seed(start), noise, deterministic=False)
+                if rec is not None:
+                    episodes.append(rec)
+                LOG.debug("iteration %d episode %d/%d", trainer.iteration + 1, i + 1, cfg.rollouts_per_iter)
+            if self.stop.is_set():
+                break
+            if not episodes:
+                LOG.error("iteration %d: every episode failed; stopping", trainer.iteration + 1)
+                return 1
+            row = trainer.update(episodes, time.perf_counter() - t0)
+            row["dropped_episodes"] = float(cfg.rollouts_per_iter - len(episodes))
+            trainer.write_metrics()
+            trainer.save_checkpoint(self.out_dir / CHECKPOINT)
+            version = self.node.publish_policy(trainer)
+            LOG.info("iteration %3d/%d  return %9.1f  success %.2f  final distance %.4f m  sigma %.2f  "
+                     "rollouts %.1f s  update %.1f s", trainer.iteration, cfg.iterations, row["return_mean"],
+                     row["success_rate"], row["final_distance_mean"], row["sigma"], row["rollout_seconds"],
+                     row["update_seconds"])
+        if self.stop.is_set():
+            LOG.info("stopped after iteration %d (checkpoint in %s)", trainer.iteration, self.out_dir)
+            return 0
+        return self.evaluate(version)
+
+    def evaluate(self, version: int) -> int:
+        """The deterministic controller from the held-out starts, over ROS; writes evaluation.json."""
+        n = self.cfg.eval_episodes if self.cfg.start != "fixed" else min(self.cfg.eval_episodes, 1)
+        recs = []
+        for k in range(n):
+            start = self.trainer.runner.start_seed(EVAL_SEED_BASE + k)
+            rec = self.episode(version, start, 0, deterministic=True)
+            if rec is not None:
+                recs.append(rec)
+        if not recs:
+            return 0 if n == 0 else 1
+        out: dict[str, Any] = {"episodes": len(recs), "iteration": self.trainer.iteration, "over_ros": True}
+        out.update(episode_summary(recs))
+        out["per_episode"] = [{"start_seed": r.start_seed, "return": r.episode_return, "success": r.final_success,
+                               "final_distance": r.final_distance, "max_depth": float(r.depth.max())} for r in recs]
+        _atomic_write(self.out_dir / "evaluation.json", json.dumps(out, indent=1, default=_json_float))
+        LOG.info("evaluation (deterministic, %d held-out starts): success %.2f, final distance %.4f m",
+                 len(recs), out["success_rate"], out["final_distance_mean"])
+        return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console script ``learner``: NF-PPO over ROS 2 until the configured iterations are done."""
+    argv = list(sys.argv if argv is None else argv)
+    argparse.ArgumentParser(
+        prog="learner", description=__doc__.split("\n\n")[0],
+        epilog="Settings follow --ros-args, e.g. --ros-args --params-file config/gear.yaml "
+               "-p learner_node:out_dir:=runs/x").parse_args(remove_ros_args(argv)[1:])
+    logging.basicConfig(level=logging.INFO, format="[learner] %(message)s", stream=sys.stdout)
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    node = executor = spinner = None
+    try:
+        try:
+            node = LearnerNode()
+        except ValueError as exc:
+            LOG.error("not starting: %s", exc)
+            return 2
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+
+        def spin() -> None:
+            while not stop.is_set() and rclpy.ok():
+                executor.spin_once(timeout_sec=0.05)
+
+        spinner = threading.Thread(target=spin, name="ros-spin", daemon=True)
+        spinner.start()
+        return RosTraining(node, stop).run()
+    finally:
+        stop.set()
+        if spinner is not None:
+            spinner.join(timeout=2.0)
+        if executor is not None:
+            executor.shutdown()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
