@@ -16,9 +16,8 @@ test: setup  ## set up if needed, then lint and the full test suite
 bench: setup  ## speed benchmarks; JSON results in bench/results/
 	@$(ENV) && python bench/run_all.py
 
-run:  ## the main job (whole stack learning the gear in simulation): not implemented yet
-	@echo "make run: not implemented yet. It arrives with the ROS node stack; today see README 'Working on the code'." >&2
-	@exit 2
+run: setup  ## the whole stack learning the gear in simulation (lockstep); ARGS="--iterations 20" etc.
+	@$(ENV) && python -m learner_node.stack --config config/gear.yaml $(ARGS)
 
 clean:  ## remove build products (keeps .venv)
 	rm -rf ros2_ws/build ros2_ws/install ros2_ws/log ros2_ws/.build.sha256 env.sh

@@ -26,6 +26,7 @@ setup(
             "flow_selfcheck = learner_node.selfcheck:main",
             "train = learner_node.train_cli:main",
             "learner = learner_node.node:main",
+            "run_stack = learner_node.stack:main",
         ],
     },
 )
