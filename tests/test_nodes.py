@@ -31,7 +31,7 @@ from ros_testing import REPO, RosProcess, allocate_domain_id
 pytestmark = pytest.mark.ros
 
 SIM = ["-m", "sim_bridge_node.node", "--ros-args", "-p", "task:=free"]
-CONTROLLER = ["-m", "nf_controller_node.node", "--ros-args"]
+CONTROLLER = ["-m", "nf_controller_node.node", "--ros-args", "-p", "idle_mode:=policy"]  # no episodes here
 GOAL_OFFSET = np.array([0.05, 0.0, -0.10])  # m, x_ref relative to the start TCP position
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 SAMPLED = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)  # for high-rate topics

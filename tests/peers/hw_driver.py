@@ -1,0 +1,84 @@
+"""A minimal "hardware-like" arm driver for tests: a MuJoCo Panda stepped by a 1 kHz wall-clock
+timer that speaks only the two ros2_control topics (``joint_states`` out, joint names in a
+different order than the controller's; ``effort_controller/commands`` in) and adds gravity
+itself, as Franka's driver does. No reset service, no task status, no stamp handshake.
+
+Run: python tests/peers/hw_driver.py   (stops on SIGINT)
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+
+import mujoco
+import numpy as np
+import rclpy
+from rclpy.experimental import EventsExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from sim_bridge_node.env import InsertionEnv
+
+QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+ORDER = [6, 0, 5, 1, 4, 2, 3]  # published joint order (a permutation of panda_joint1..7)
+
+
+class HardwareLikeDriver(Node):
+    def __init__(self) -> None:
+        super().__init__("hw_driver")
+        self.env = InsertionEnv("free")
+        self.env.reset()
+        self.names = [self.env.scene.joint_names[i] for i in ORDER]
+        self.command = np.zeros(7)
+        self._g_data = mujoco.MjData(self.env.model)
+        m = self.env.model
+        self._vadr = np.array([m.joint(n).dofadr[0] for n in self.env.scene.joint_names])
+        self.pub = self.create_publisher(JointState, "joint_states", QOS)
+        self.create_subscription(Float64MultiArray, "effort_controller/commands", self.on_command, QOS)
+        self.create_timer(0.001, self.tick)
+
+    def on_command(self, msg: Float64MultiArray) -> None:
+        data = np.asarray(msg.data, dtype=float)
+        if data.shape == (7,) and np.all(np.isfinite(data)):
+            self.command = data
+
+    def tick(self) -> None:
+        env = self.env
+        gravity = self._gravity()
+        env.step(np.clip(self.command + gravity, -env.torque_limits, env.torque_limits))
+        msg = JointState()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.name = self.names
+        msg.position = env.q[ORDER].tolist()
+        msg.velocity = env.dq[ORDER].tolist()
+        self.pub.publish(msg)
+
+    def _gravity(self) -> np.ndarray:
+        """g(q): the bias force at zero velocity."""
+        d = self._g_data
+        d.qpos[:] = self.env.data.qpos
+        mujoco.mj_forward(self.env.model, d)
+        return d.qfrc_bias[self._vadr]
+
+
+def main() -> None:
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    node = HardwareLikeDriver()
+    ex = EventsExecutor()
+    ex.add_node(node)
+    while not stop.is_set():
+        ex.spin_once(timeout_sec=0.1)
+    ex.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,159 @@
+"""The whole stack as separate processes over real DDS: PPO iterations through the run_episode
+action and the streamed rollouts (equal to the in-process trainer), a learner killed mid-iteration
+and resumed from its checkpoint, and the controller unchanged against a hardware-like driver."""
+
+from __future__ import annotations
+
+import json
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+from nf_msgs.action import RunEpisode
+from nf_msgs.msg import ControllerStatus, RolloutChunk
+from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
+from rclpy.action import ActionClient
+from sensor_msgs.msg import JointState
+
+from learner_node.config import TrainConfig
+from learner_node.trainer import Trainer, metrics_without_timing
+from nf_controller_node import panda_spec
+from nf_controller_node.arm_model import ArmModel
+from nf_controller_node.control_loop import MODE_IDLE, JointMap
+
+from ros_testing import REPO, RosProcess, allocate_domain_id
+from test_nodes import LATCHED, RELIABLE, Probe, policy_msg
+
+pytestmark = pytest.mark.ros
+
+CONFIG = str(REPO / "config" / "gear.yaml")
+SHORT = {"episode_seconds": 0.5, "rollouts_per_iter": 3, "eval_episodes": 0}
+
+
+def stack(domain: int, tmp: Path, idle_mode: str) -> tuple[RosProcess, RosProcess]:
+    sim = RosProcess(["-m", "sim_bridge_node.node", "--ros-args", "--params-file", CONFIG], domain, tmp / "sim.log")
+    ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "--params-file", CONFIG,
+                      "-p", f"nf_controller:idle_mode:={idle_mode}"], domain, tmp / "controller.log")
+    return sim, ctl
+
+
+def learner(domain: int, out: Path, log: Path, iterations: int, settings: dict) -> RosProcess:
+    args = ["-m", "learner_node.node", "--ros-args", "--params-file", CONFIG,
+            "-p", f"learner_node:out_dir:={out}", "-p", f"learner_node:iterations:={iterations}"]
+    for key, value in settings.items():
+        args += ["-p", f"learner_node:{key}:={value}" if key != "episode_seconds" else f"{key}:={value}"]
+    return RosProcess(args, domain, log)
+
+
+def wait_exit(proc: RosProcess, timeout: float) -> int:
+    proc.proc.wait(timeout)
+    return proc.proc.returncode
+
+
+def in_process_history(iterations: int, settings: dict) -> list[dict]:
+    cfg = TrainConfig.from_sources(CONFIG, {**settings, "iterations": iterations})
+    trainer = Trainer(cfg)
+    for _ in range(iterations):
+        trainer.train_iteration()
+    return trainer.history
+
+
+def assert_same_learning(over_ros: list[dict], in_process: list[dict]) -> None:
+    assert [r["iteration"] for r in over_ros] == [r["iteration"] for r in in_process]
+    for a, b in zip(over_ros, in_process, strict=True):
+        a, b = metrics_without_timing(a), metrics_without_timing(b)
+        for key in b:
+            assert a[key] == pytest.approx(b[key], rel=1e-6, abs=1e-9), (key, a["iteration"])
+
+
+def test_two_ppo_iterations_over_ros_equal_the_in_process_trainer(tmp_path):
+    domain = allocate_domain_id()
+    sim, ctl = stack(domain, tmp_path, "pause")
+    try:
+        lrn = learner(domain, tmp_path / "run", tmp_path / "learner.log", 2, SHORT)
+        code = wait_exit(lrn, 240)
+        assert code == 0, lrn.log() + ctl.log()
+    finally:
+        ctl.stop()
+        sim.stop()
+    over_ros = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert all(r["dropped_episodes"] == 0 for r in over_ros)
+    assert_same_learning(over_ros, in_process_history(2, SHORT))
+
+
+def test_learner_killed_mid_iteration_holds_the_arm_and_resumes_without_losing_an_iteration(tmp_path):
+    domain = allocate_domain_id()
+    settings = {**SHORT, "rollouts_per_iter": 4}
+    probe = Probe(domain)
+    status = probe.collect(ControllerStatus, "controller_status", RELIABLE)
+    states = probe.collect(JointState, "joint_states", RELIABLE, convert=lambda m: np.array(m.velocity))
+    sim, ctl = stack(domain, tmp_path, "hold")
+    run = tmp_path / "run"
+    try:
+        first = learner(domain, run, tmp_path / "learner1.log", 3, settings)
+        metrics = run / "metrics.json"
+        assert probe.spin_until(lambda: metrics.exists() and len(json.loads(metrics.read_text())) >= 1, 240), \
+            first.log()
+        assert probe.spin_until(lambda: status and status[-1][1].mode != MODE_IDLE, 30)  # iteration 2 is running
+        probe.spin_for(0.3)
+        first.proc.send_signal(signal.SIGKILL)
+        first.proc.wait(10)
+        # the running episode ends (0.5 s simulated) and the arm is held: velocities die out
+        assert probe.spin_until(lambda: status[-1][1].mode == MODE_IDLE, 30), ctl.log()
+        probe.spin_for(3.0)
+        assert np.abs(states[-1][1]).max() < 1e-2, states[-1][1]
+        assert status[-1][1].mode == MODE_IDLE and not status[-1][1].fault
+        assert len(json.loads(metrics.read_text())) == 1  # iteration 2 never finished
+        second = learner(domain, run, tmp_path / "learner2.log", 3, settings)
+        assert wait_exit(second, 300) == 0, second.log()
+        assert "resuming from" in second.log() and "after iteration 1" in second.log()
+    finally:
+        ctl.stop()
+        sim.stop()
+        probe.close()
+    over_ros = json.loads(metrics.read_text())
+    assert_same_learning(over_ros, in_process_history(3, settings))
+
+
+def test_controller_unchanged_against_a_hardware_like_driver(tmp_path):
+    """The driver compensates gravity itself and speaks only the two ros2_control topics; the
+    controller (gravity compensation off, no reset service) holds, follows a policy, and runs and
+    streams an episode."""
+    domain = allocate_domain_id()
+    probe = Probe(domain)
+    arm = ArmModel(part=panda_spec.GEAR_PART)
+    joints = JointMap()
+    states = probe.collect(JointState, "joint_states", RELIABLE,
+                           convert=lambda m: joints.map(m.name, m.position, m.velocity))
+    chunks = probe.collect(RolloutChunk, "rollouts", RELIABLE)
+    driver = RosProcess([str(REPO / "tests" / "peers" / "hw_driver.py")], domain, tmp_path / "driver.log")
+    ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "-p", "gravity_compensation:=false",
+                      "-p", "reset_service:=''", "-p", "idle_mode:=policy", "-p", "state_timeout:=0.05"],
+                     domain, tmp_path / "controller.log")
+    try:
+        assert probe.spin_until(lambda: len(states) > 100, 30), driver.log()
+        x0 = arm.tcp_position(states[-1][1][0])
+        goal = x0 + np.array([0.04, 0.0, -0.05])
+        pub = probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", LATCHED)
+        pub.publish(policy_msg(goal, version=3))
+        probe.spin_for(4.0)
+        q = states[-1][1][0]
+        assert np.linalg.norm(arm.tcp_position(q) - goal) < 0.005, (arm.tcp_position(q), goal, ctl.log())
+        client = ActionClient(probe.node, RunEpisode, "run_episode")
+        assert client.wait_for_server(timeout_sec=10)
+        sent = client.send_goal_async(RunEpisode.Goal(policy_version=3, seed=-1, noise_seed=1, duration=0.5))
+        assert probe.spin_until(sent.done, 10) and sent.result().accepted
+        done = sent.result().get_result_async()
+        assert probe.spin_until(done.done, 20), ctl.log()
+        result = done.result().result
+        assert result.completed, result.message
+        assert probe.spin_until(lambda: len(chunks) >= result.n_chunks, 5)
+        assert [c.seq for _, c in chunks] == list(range(result.n_chunks)) and chunks[-1][1].final
+        assert sum(len(c.t) for _, c in chunks) == 50
+        assert np.all(np.isnan(np.concatenate([c.insertion_depth for _, c in chunks])))  # no ground truth
+        assert driver.alive() and ctl.alive()
+    finally:
+        ctl.stop()
+        driver.stop()
+        probe.close()
