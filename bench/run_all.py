@@ -60,6 +60,14 @@ def main() -> int:
                 line += (f"; training iteration {s['iteration_nf_over_mlp']:.2f}x "
                          f"(target <= {s['target_iteration_max']}x)")
             print(line)
+    stack = _run("stack", [sys.executable, str(HERE / "bench_stack.py"), *(["--quick"] if args.quick else [])])
+    if stack is None:
+        failed.append("stack")
+    else:
+        r, w = stack["lockstep_steps_per_s"], stack["iteration_wall_s"]
+        print(f"   lockstep over ROS: median {r['median']:.0f} steps/s (target >= {r['target']:.0f}); PPO iteration "
+              f"over ROS {w['over_ros_median']:.1f} s vs in process {w['in_process_median']:.1f} s "
+              f"({w['ros_over_in_process']:.1f}x)")
     if failed:
         print(f"failed: {', '.join(failed)}")
     return 1 if failed else 0

@@ -1,0 +1,104 @@
+"""Benchmark of the node stack over ROS 2: lockstep closed-loop rate between separate processes
+(sim_bridge + nf_controller, during the learner's episodes) and the wall time of one PPO iteration
+over ROS against the same iteration in process, in the same run.
+
+Starts the three processes (own ROS_DOMAIN_ID, loopback only) ``--repeats`` times, each learner
+doing one iteration; then times the in-process trainer on the same settings. Writes
+``bench/results/stack.json``. Target (issue #6): lockstep >= 3000 steps/s.
+Usage: python bench/bench_stack.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+CONFIG = REPO / "config" / "gear.yaml"
+TARGET_STEPS_PER_S = 3000.0
+
+
+def ros_iteration(rollouts: int, seconds: float, domain: int, workdir: Path) -> dict:
+    """One PPO iteration over ROS; returns the learner's metrics row."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    params = ["--ros-args", "--params-file", str(CONFIG)]
+    procs = [subprocess.Popen([sys.executable, "-m", mod, *params, *extra], env=env, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.STDOUT)
+             for mod, extra in (("sim_bridge_node.node", []),
+                                ("nf_controller_node.node", ["-p", "nf_controller:idle_mode:=pause"]))]
+    try:
+        out = workdir / f"run{domain}"
+        learner = subprocess.run(
+            [sys.executable, "-m", "learner_node.node", *params, "-p", f"learner_node:out_dir:={out}",
+             "-p", "learner_node:iterations:=1", "-p", f"learner_node:rollouts_per_iter:={rollouts}",
+             "-p", "learner_node:eval_episodes:=0", "-p", f"episode_seconds:={seconds}"],
+            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, timeout=900)
+        if learner.returncode != 0:
+            raise RuntimeError(f"learner exited with {learner.returncode}")
+        return json.loads((out / "metrics.json").read_text())[-1]
+    finally:
+        for p in procs:  # stopped by PID
+            p.send_signal(2)
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def in_process_iteration(rollouts: int, seconds: float) -> dict:
+    """The same iteration in process (after one warm-up iteration compiles the kernels)."""
+    from learner_node.config import TrainConfig
+    from learner_node.trainer import Trainer
+
+    cfg = TrainConfig.from_sources(CONFIG, {"rollouts_per_iter": rollouts, "episode_seconds": seconds})
+    trainer = Trainer(cfg)
+    trainer.train_iteration()
+    return trainer.train_iteration()
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="2 repeats of 3 short episodes")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", type=Path, default=HERE / "results" / "stack.json")
+    args = parser.parse_args()
+    rollouts, seconds, repeats = (3, 1.0, 2) if args.quick else (15, 5.0, args.repeats)
+    steps = rollouts * round(seconds / 0.001)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(repeats):
+            row = ros_iteration(rollouts, seconds, 150 + (os.getpid() + k) % 50, Path(tmp))
+            rows.append(row)
+            print(f"over ROS {k + 1}/{repeats}: rollouts {row['rollout_seconds']:.2f} s "
+                  f"({steps / row['rollout_seconds']:.0f} steps/s), update {row['update_seconds']:.2f} s", flush=True)
+    local = [in_process_iteration(rollouts, seconds) for _ in range(2)]
+    rates = [steps / r["rollout_seconds"] for r in rows]
+    ros_wall = statistics.median(r["wall_seconds"] for r in rows)
+    local_wall = statistics.median(r["wall_seconds"] for r in local)
+    result = {
+        "benchmark": "stack", "date": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": platform.machine(),
+        "cpus": os.cpu_count(), "rollouts": rollouts, "episode_seconds": seconds, "repeats": repeats,
+        "lockstep_steps_per_s": {"median": statistics.median(rates), "min": min(rates), "max": max(rates),
+                                 "all": rates, "target": TARGET_STEPS_PER_S},
+        "iteration_wall_s": {"over_ros_median": ros_wall, "in_process_median": local_wall,
+                             "ros_over_in_process": ros_wall / local_wall,
+                             "over_ros_all": [r["wall_seconds"] for r in rows],
+                             "in_process_all": [r["wall_seconds"] for r in local]},
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1))
+    print(json.dumps(result["lockstep_steps_per_s"]), json.dumps(result["iteration_wall_s"]))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
