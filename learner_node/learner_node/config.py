@@ -18,6 +18,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from nf_controller_node.flow_spec import ACTIVATIONS
@@ -76,6 +77,10 @@ class TrainConfig:
     """S = stiffness * I in the flow's latent space (None: gear 4, peg 1, block 1)."""
     damping: float | None = None
     """D = damping * I in the flow's latent space (None: 1 for all tasks)."""
+    stiffness_axial: float | None = None
+    """S entry of the last (insertion, z) axis, replacing ``stiffness`` there (None: isotropic S)."""
+    damping_axial: float | None = None
+    """D entry of the last (insertion, z) axis, replacing ``damping`` there (None: isotropic D)."""
     mlp_hidden: int = 64
     """MLP policy: units per hidden layer (two hidden layers)."""
     mlp_activation: str = "tanh"
@@ -147,6 +152,9 @@ class TrainConfig:
         _positive("decision_period", self.decision_period)
         _positive("stiffness", self.stiffness)
         _positive("damping", self.damping)
+        for name in ("stiffness_axial", "damping_axial"):
+            if getattr(self, name) is not None:
+                _positive(name, getattr(self, name))
         _positive("learning_rate", self.learning_rate)
         _positive("reward_a", self.reward_a)
         for name in ("reward_w", "reward_v", "reward_velocity", "reward_action", "vf_coef", "max_grad_norm",
@@ -186,6 +194,14 @@ class TrainConfig:
     def dim(self) -> int:
         """Task-space dimension: 2 for the block (x, z), 3 for the arm tasks."""
         return 2 if self.task == "block" else 3
+
+    def stiffness_matrix(self) -> np.ndarray:
+        """S: ``stiffness`` on every axis, ``stiffness_axial`` (if set) on the last (insertion) axis."""
+        return _diagonal(self.dim, self.stiffness, self.stiffness_axial)
+
+    def damping_matrix(self) -> np.ndarray:
+        """D: ``damping`` on every axis, ``damping_axial`` (if set) on the last (insertion) axis."""
+        return _diagonal(self.dim, self.damping, self.damping_axial)
 
     @property
     def steps_per_decision(self) -> int:
@@ -228,6 +244,13 @@ class TrainConfig:
                 raise ValueError(f"unknown setting {key!r}; known settings: {', '.join(sorted(_FIELD_NAMES))}")
             values[key] = parse_value(key, value) if isinstance(value, str) else value
         return cls(**values)
+
+
+def _diagonal(dim: int, value: float, axial: float | None) -> np.ndarray:
+    diag = np.full(dim, float(value))
+    if axial is not None:
+        diag[-1] = axial
+    return np.diag(diag)
 
 
 _FIELD_NAMES = frozenset(f.name for f in fields(TrainConfig))

@@ -55,7 +55,7 @@ def build_policy(cfg: TrainConfig, x_ref: np.ndarray) -> NFPolicy | MLPPolicy:
     d = cfg.dim
     if cfg.policy == "nf":
         arch = FlowArchitecture(dim=d, n_flow=cfg.n_flow, n_hidden=cfg.n_hidden, activation=cfg.activation)
-        return NFPolicy(arch, stiffness=cfg.stiffness * np.eye(d), damping=cfg.damping * np.eye(d),
+        return NFPolicy(arch, stiffness=cfg.stiffness_matrix(), damping=cfg.damping_matrix(),
                         x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed)
     return MLPPolicy(d, cfg.mlp_hidden, cfg.mlp_activation, x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed)
 
