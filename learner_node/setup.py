@@ -27,6 +27,7 @@ setup(
             "train = learner_node.train_cli:main",
             "learner = learner_node.node:main",
             "run_stack = learner_node.stack:main",
+            "nf_report = learner_node.report:main",
         ],
     },
 )

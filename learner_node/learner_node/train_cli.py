@@ -69,6 +69,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"train: error: {exc}", file=sys.stderr)
         return 2
     trainer.run(evaluate=not args.no_eval)
+    if trainer.history:
+        from .plots import plot_learning_curves
+
+        title = f"{cfg.policy}-PPO on {cfg.task}, sigma_init {cfg.sigma_init:g}, seed {cfg.seed}"
+        path = plot_learning_curves([trainer.history], args.out / "learning_curves.png", title, label="this run")
+        logging.info("learning curves: %s", path)
     return 0
 
 
