@@ -258,13 +258,16 @@ def test_recorder_killed_with_sigkill_leaves_complete_chunks_readable(tmp_path):
     assert len(stamps) > 500
     distinct = sorted(set(stamps))
     assert np.all(np.diff(distinct) == DT_NS), "no hole before the crash"
+    with AnyReader([bag]) as r:
+        n = sum(1 for c, _, raw in r.messages() if r.deserialize(raw, c.msgtype) is not None)
+    assert n == sum(health.counts.values())
     # what was lost: at most the open chunk (0.5 s) plus the metadata period
     last_log = max(f.last_time for f in health.files)
     assert (killed_at - last_log) * 1e-9 < 0.5 + 0.2 + 0.3
     known, more = health.loss_window()
     lost = sum(health.lost.values())
     later = [s for _, s in seen if s > distinct[-1]]
-    assert known < 0.5 + 0.3 and more == pytest.approx(0.2)
+    assert lost > 0 and known < 0.5 + 0.3 and more == pytest.approx(0.2)
     assert health.lost.get("/joint_states", 0) <= len(later)
     report = health.report()
     assert "NOT CLOSED" in report and f"lost: {lost} messages" in report
@@ -272,15 +275,6 @@ def test_recorder_killed_with_sigkill_leaves_complete_chunks_readable(tmp_path):
     assert info.proc.wait(30) == 1
     parsed = json.loads(info.log())
     assert parsed["lost"] == health.lost and not parsed["closed"]
-    # rosbags wants a summary: `info --repair` rewrites the readable part whole, keeping the loss on record
-    repair = RosProcess(["-m", "nf_bags.info", str(bag), "--repair"], domain, tmp_path / "repair.log")
-    assert repair.proc.wait(30) == 1, repair.log()
-    repaired = bagfile.scan(bag)
-    assert repaired.closed and repaired.counts == health.counts and not repaired.lost
-    assert f"{lost} messages were lost" in repaired.report()
-    with AnyReader([bag]) as r:
-        n = sum(1 for c, _, raw in r.messages() if r.deserialize(raw, c.msgtype) is not None)
-    assert n == sum(health.counts.values())
     print(f"killed: {sum(health.counts.values())} messages readable in {health.files[0].chunks} chunks, "
           f"{lost} counted by the metadata lost ({known:.2f} s, <= {more:g} s more); "
           f"{(killed_at - last_log) * 1e-9:.2f} s between the last readable message and the kill")
@@ -338,5 +332,5 @@ def test_offline_ppo_update_from_a_bag_equals_the_learner_iteration(tmp_path):
     ppo_keys = [k for k in row if k not in summary_keys and not re.search(r"seconds|iteration", k)]
     assert ppo_keys
     for key in ppo_keys:
-        assert row[key] == pytest.approx(online[key], rel=1e-9, abs=1e-12, nan_ok=True), key
+        assert row[key] == pytest.approx(online[key], rel=1e-9, abs=1e-12), key
     print(f"offline update from the bag = online iteration 1: policy weights equal, {ppo_keys} equal")

@@ -8,7 +8,6 @@ recorder was killed (no summary, maybe a torn last record) reads up to its last 
 
 from __future__ import annotations
 
-import copy
 import os
 import struct
 from collections import Counter
@@ -23,8 +22,6 @@ from mcap.records import Channel, Chunk, Footer, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from .writer import CHUNK_SECONDS_KEY, METADATA, METADATA_SECONDS_KEY, STATE_KEY, UPDATED_KEY
-
-LOST_KEY = "nf_bags.lost_messages"  # custom_data after ``repair``: messages the crash cost
 
 _Loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
@@ -158,9 +155,9 @@ class BagScan:
 
     @property
     def closed(self) -> bool:
-        """The recorder closed the bag, or ``repair`` did (metadata says so and every file has its footer)."""
+        """The recorder closed the bag (metadata says so and every file has its footer)."""
         custom = self.metadata.get("custom_data") or {}
-        return custom.get(STATE_KEY, "closed") in ("closed", "repaired") and all(f.complete for f in self.files)
+        return custom.get(STATE_KEY, "closed") == "closed" and all(f.complete for f in self.files)
 
     @property
     def metadata_counts(self) -> dict[str, int]:
@@ -212,10 +209,7 @@ class BagScan:
             extra = f" (metadata {mc})" if mc is not None and mc != counts.get(name, 0) else ""
             lines.append(f"  {name}  {types.get(name, '?')}  {counts.get(name, 0)}{extra}")
         window = self.loss_window()
-        custom = meta.get("custom_data") or {}
-        if window is None and custom.get(STATE_KEY) == "repaired":
-            lines.append(f"state:      repaired after a recorder crash; {custom.get(LOST_KEY, '?')} messages were lost")
-        elif window is None:
+        if window is None:
             lines.append("state:      closed cleanly")
         else:
             known, more = window
@@ -239,59 +233,6 @@ def scan(bag: str | Path) -> BagScan:
             pass
         files.append(s)
     return BagScan(bag, files, load_metadata(bag) if bag.is_dir() else {})
-
-
-def repair(bag: str | Path) -> BagScan:
-    """Make a crashed bag whole (like ``ros2 bag reindex``): rewrite every file without a summary
-    from its readable records (the torn tail is dropped; nothing readable is lost) and rewrite
-    metadata.yaml with the counts the files now hold. The loss stays on record in ``custom_data``
-    (``nf_bags.lost_messages``). Returns the scan from before the repair."""
-    from mcap.writer import CompressionType
-    from mcap.writer import Writer as McapWriter
-
-    bag = Path(bag)
-    before = scan(bag)
-    for f in before.files:
-        if f.complete:
-            continue
-        tmp = f.path.with_suffix(".mcap.repairing")
-        with open(tmp, "wb") as out:
-            writer = McapWriter(out, compression=CompressionType.ZSTD)
-            writer.start(profile="ros2", library="nf_bags repair")
-            schema_ids: dict[int, int] = {}
-            channel_ids: dict[int, int] = {}
-            for record in _records(f.path, FileScan(f.path)):
-                if isinstance(record, Schema) and record.id not in schema_ids:
-                    schema_ids[record.id] = writer.register_schema(record.name, record.encoding, record.data)
-                elif isinstance(record, Channel) and record.id not in channel_ids:
-                    channel_ids[record.id] = writer.register_channel(
-                        record.topic, record.message_encoding, schema_ids.get(record.schema_id, 0), record.metadata)
-                elif isinstance(record, Message):
-                    writer.add_message(channel_ids[record.channel_id], record.log_time, record.data,
-                                       record.publish_time, record.sequence)
-            writer.finish()
-        os.replace(tmp, f.path)
-    after = scan(bag)
-    meta = copy.deepcopy(before.metadata)
-    counts = after.counts
-    for entry in meta.get("topics_with_message_count", []):
-        entry["message_count"] = counts.get(entry["topic_metadata"]["name"], 0)
-    meta["message_count"] = sum(counts.values())
-    for entry, f in zip(meta.get("files", []), after.files, strict=False):
-        entry["message_count"] = sum(f.counts.values())
-        if f.first_time is not None:
-            entry["starting_time"] = {"nanoseconds_since_epoch": f.first_time}
-            entry["duration"] = {"nanoseconds": (f.last_time or f.first_time) - f.first_time}
-    custom = dict(meta.get("custom_data") or {})
-    if custom.get(STATE_KEY) != "closed":
-        custom[STATE_KEY] = "repaired"
-        custom[LOST_KEY] = str(sum(before.lost.values()))
-    meta["custom_data"] = custom
-    text = yaml.dump({"rosbag2_bagfile_information": meta}, sort_keys=False)
-    tmp = bag / (METADATA + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, bag / METADATA)
-    return before
 
 
 def file_size(path: str | Path) -> int:

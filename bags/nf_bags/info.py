@@ -1,6 +1,5 @@
-"""``python -m nf_bags.info BAG [--json] [--repair]``: topics, counts, files, chunks of a bag; after a
-recorder crash, what is readable and how much was lost (``--repair`` makes such a bag whole for
-every rosbag2 reader). No ROS needed."""
+"""``python -m nf_bags.info BAG [--json]``: topics, counts, files, chunks of a bag, and after a
+recorder crash what is readable and how much was lost. No ROS needed."""
 
 from __future__ import annotations
 
@@ -8,7 +7,7 @@ import argparse
 import json
 import sys
 
-from .bagfile import repair, scan
+from .bagfile import scan
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -16,11 +15,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m nf_bags.info", description=__doc__.splitlines()[0])
     parser.add_argument("bag", help="bag directory (or one .mcap file)")
     parser.add_argument("--json", action="store_true", help="machine-readable output")
-    parser.add_argument("--repair", action="store_true",
-                        help="rewrite files without a summary from their readable part and fix metadata.yaml, "
-                             "so that every rosbag2 reader opens the bag (reports the state before the repair)")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
-    result = repair(args.bag) if args.repair else scan(args.bag)
+    result = scan(args.bag)
     if args.json:
         window = result.loss_window()
         print(json.dumps({
