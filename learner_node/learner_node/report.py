@@ -268,6 +268,7 @@ def group_stats(runs: list[RunResult]) -> dict[str, Any]:
     fs_init = [run.freespace["initial"] for run in runs if run.freespace]
     fs_final = [run.freespace["final"] for run in runs if run.freespace]
     last5 = [float(np.mean([r["success_rate"] for r in run.history[-WINDOW:]])) for run in runs]
+    first5 = [float(np.mean([r["success_rate"] for r in run.history[:WINDOW]])) for run in runs]
     return {
         "seeds": sorted(run.seed for run in runs),
         "iterations": [len(run.history) for run in runs],
@@ -275,6 +276,7 @@ def group_stats(runs: list[RunResult]) -> dict[str, Any]:
         "median_iterations_to_90": median_iterations(its),
         "distance_first10": (float(np.mean(dist)), float(np.std(dist))) if dist else (math.nan, math.nan),
         "torque_first10": (float(np.mean(torque)), float(np.std(torque))) if torque else (math.nan, math.nan),
+        "success_first5": first5,
         "success_last5": last5,
         "eval_success": [e["success_rate"] for e in evals],
         "eval_episodes": sum(int(e["episodes"]) for e in evals),
@@ -299,9 +301,10 @@ def _pm(pair: tuple[float, float], scale: float = 1.0, digits: int = 2) -> str:
 def results_table(runs: list[RunResult]) -> tuple[str, dict[str, Any]]:
     """Markdown Table I over all groups, and the numbers as a dict (for results.json)."""
     lines = ["| task | policy | sigma_init (N) | seeds | iterations run | iterations to 90 % (median; per seed) "
-             "| state distance, first 10 it. (m) | torque, first 10 it. (Nm) | success, last 5 it. (per seed) "
+             "| state distance, first 10 it. (m) | torque, first 10 it. (Nm; block N) | success, it. 1-5 (per seed) "
+             "| success, last 5 it. (per seed) "
              "| held-out eval success | free-space converged: it. 0 / final |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     data: dict[str, Any] = {}
     for (task, policy, sigma), group in _groups(runs).items():
         st = group_stats(group)
@@ -310,14 +313,13 @@ def results_table(runs: list[RunResult]) -> tuple[str, dict[str, Any]]:
         per_seed = ", ".join(format_iterations(v, n) for v, n in zip(st["iterations_to_90"], st["iterations"],
                                                                     strict=True))
         its = f"{format_iterations(st['median_iterations_to_90'], limit)} ({per_seed})"
-        unit = "N" if task == "block" else "Nm"
         fs0, fs1 = st["freespace_initial"], st["freespace_final"]
         fs = f"{fs0[0]}/{fs0[1]} / {fs1[0]}/{fs1[1]}" if fs0[1] else "n/a"
         ev = ", ".join(f"{v:.2f}" for v in st["eval_success"]) or "n/a"
         lines.append(
             f"| {task} | {POLICY_NAMES.get(policy, policy)} | {sigma:g} | {len(group)} | "
             f"{', '.join(str(n) for n in st['iterations'])} | {its} | {_pm(st['distance_first10'], digits=3)} | "
-            f"{_pm(st['torque_first10'])} {unit if task == 'block' else ''} | "
+            f"{_pm(st['torque_first10'])} | {', '.join(f'{v:.2f}' for v in st['success_first5'])} | "
             f"{', '.join(f'{v:.2f}' for v in st['success_last5'])} | {ev} | {fs} |"
         )
     return "\n".join(lines), data
