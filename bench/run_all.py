@@ -60,6 +60,12 @@ def main() -> int:
                 line += (f"; training iteration {s['iteration_nf_over_mlp']:.2f}x "
                          f"(target <= {s['target_iteration_max']}x)")
             print(line)
+    bags = _run("bags", [sys.executable, str(HERE / "bench_bags.py"), *(["--quick"] if args.quick else [])])
+    if bags is None:
+        failed.append("bags")
+    else:
+        print(f"   recording: {bags['messages_per_s']:.0f} msg/s, {bags['payload_mb_per_s']:.2f} MB/s, recorder CPU "
+              f"{100 * bags['recorder_cpu_fraction']:.0f} % of a core, no drops: {bags['no_drops']}")
     stack = _run("stack", [sys.executable, str(HERE / "bench_stack.py"), *(["--quick"] if args.quick else [])])
     if stack is None:
         failed.append("stack")
