@@ -81,6 +81,7 @@ cat > env.sh <<ENV
 source "$VENV/bin/activate"
 export AMENT_PREFIX_PATH="$VENV\${AMENT_PREFIX_PATH:+:\$AMENT_PREFIX_PATH}"
 source "$ROOT/ros2_ws/install/setup.bash"
+export PYTHONPATH="$ROOT/bags\${PYTHONPATH:+:\$PYTHONPATH}"  # nf_bags (plain Python, not a colcon package)
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export MUJOCO_GL=osmesa PYOPENGL_PLATFORM=osmesa
 ENV

@@ -103,7 +103,7 @@ def node_commands(config: Path, run_dir: Path, iterations: int, extra: Sequence[
                     "-p", f"learner_node:iterations:={iterations}", *extra],
     }
     if importlib.util.find_spec("nf_bags") is not None:
-        cmds["recorder"] = [py, "-m", "nf_bags.record", "--out", str(run_dir / "bag")]
+        cmds["recorder"] = [py, "-m", "nf_bags.record", "-o", str(run_dir / "bag")]
     return cmds
 
 
