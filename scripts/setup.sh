@@ -45,8 +45,9 @@ if [ "$(cat "$VENV/.requirements.sha256" 2>/dev/null)" != "$REQ_HASH" ]; then
   INC=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
   SITE=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
   step "rewriting CMake paths of the ROS wheels to $INC and $SITE"
-  grep -rlE '/opt/python/cp311-cp311/(include/python3.11|lib/python3.11/site-packages)' \
-    "$VENV/share" --include='*.cmake' 2>/dev/null | while read -r f; do
+  # (grep finds nothing when an earlier run rewrote them already: not an error)
+  { grep -rlE '/opt/python/cp311-cp311/(include/python3.11|lib/python3.11/site-packages)' \
+    "$VENV/share" --include='*.cmake' 2>/dev/null || true; } | while read -r f; do
       sed -i -e "s#/opt/python/cp311-cp311/include/python3.11#$INC#g" \
              -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages#$SITE#g" "$f"
     done
