@@ -12,13 +12,17 @@ Modes (parameter ``mode``):
   lost) the same state is published again. A bad command is ignored: the simulation waits.
 - ``realtime``: a 1 kHz wall-clock timer steps with the last command; after
   ``command_timeout`` s without one the bridge holds the arm (gravity compensation + joint
-  damping) and counts a command timeout, as a real arm's driver would.
+  damping) and counts a command timeout, as a real arm's driver would. It also times each
+  state-to-command round trip and counts deadline misses (``response_timing``); the numbers go
+  to ``/diagnostics`` and, with ``response_log`` set, every latency to a file at shutdown.
 """
 
 from __future__ import annotations
 
 import array
+import json
 import time
+from pathlib import Path
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -36,6 +40,7 @@ from nf_controller_node.ros_runtime import declare_read_only, run_node
 from nf_controller_node.topics import parse_stamp_label
 from sim_bridge_node.bridge import ACCEPTED, BAD, STALE, BridgeConfig, SimBridge
 from sim_bridge_node.env import InsertionEnv
+from sim_bridge_node.response_timing import ResponseTiming, latency_summary
 from sim_bridge_node.scenes import TASKS
 
 PARAMETERS = {
@@ -50,9 +55,11 @@ PARAMETERS = {
     "task_status_rate": (50.0, "task_status messages per s of simulated time (0: off)"),
     "clock_period": (0.001, "s of simulated time between clock messages (0: every step)"),
     "diagnostics_period": (1.0, "s of wall time between /diagnostics messages"),
+    "response_log": ("", "realtime: write every state-to-command latency here at shutdown (.npy, + .json summary)"),
 }
 
 STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)  # ros2_control's default
+PUBLISH_QOS = QoSProfile(depth=topics.PUBLISH_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
 _LATE_TICK = 2.0  # realtime: a tick later than this many periods counts as late
 
 
@@ -94,9 +101,9 @@ class SimBridgeNode(Node):
         self._state = JointState()
         self._state.name = list(self.bridge.joint_names)
         self._clock_msg = Clock()
-        self._state_pub = self.create_publisher(JointState, topics.JOINT_STATES, qos)
-        self._clock_pub = self.create_publisher(Clock, topics.CLOCK, qos) if self.lockstep else None
-        self._task_pub = self.create_publisher(TaskStatus, topics.TASK_STATUS, qos)
+        self._state_pub = self.create_publisher(JointState, topics.JOINT_STATES, PUBLISH_QOS)
+        self._clock_pub = self.create_publisher(Clock, topics.CLOCK, PUBLISH_QOS) if self.lockstep else None
+        self._task_pub = self.create_publisher(TaskStatus, topics.TASK_STATUS, PUBLISH_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
         on_command = self._on_command_lockstep if self.lockstep else self._on_command_realtime
         self.create_subscription(Float64MultiArray, topics.COMMANDS, on_command, qos)
@@ -107,6 +114,7 @@ class SimBridgeNode(Node):
         self._last_publish = time.monotonic()
         self._last_tick = None
         self._window = (time.monotonic(), 0, 0.0)  # wall time, steps, sim time at the last report
+        self.timing = None if self.lockstep else ResponseTiming(keep_all=bool(p["response_log"]))
         if self.lockstep:
             self.create_timer(p["lockstep_resend"] / 2.0, self._on_resend_check)
         else:
@@ -126,7 +134,11 @@ class SimBridgeNode(Node):
         self._after_step()
 
     def _on_command_realtime(self, msg: Float64MultiArray) -> None:
-        self._accept(msg)
+        now = time.perf_counter()
+        if self._accept(msg) and msg.layout.dim:
+            answers = parse_stamp_label(msg.layout.dim[0].label)
+            if answers is not None:
+                self.timing.answered(answers, now)
 
     def _accept(self, msg: Float64MultiArray) -> bool:
         dims = msg.layout.dim
@@ -178,6 +190,8 @@ class SimBridgeNode(Node):
         msg.position = array.array("d", env.q.tobytes())
         msg.velocity = array.array("d", env.dq.tobytes())
         msg.effort = array.array("d", self.bridge.torque.tobytes())
+        if self.timing is not None:
+            self.timing.published(self.bridge.stamp_ns, time.perf_counter())
         self._state_pub.publish(msg)
         self._last_publish = time.monotonic()
 
@@ -214,10 +228,30 @@ class SimBridgeNode(Node):
             "bad_commands": b.bad_commands, "stale_commands": b.stale_commands, "last_error": b.last_error,
             "lockstep_resends": self.resends, "late_ticks": self.late_ticks,
         }
+        if self.timing is not None:
+            lat = latency_summary(self.timing.take_window())
+            values.update({f"response_{k}": f"{v:.1f}" for k, v in lat.items()})
+            values.update(self.timing.counters())
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self._diag_pub.publish(msg)
+
+    def destroy_node(self) -> None:
+        """Write the response log (when asked for), then destroy the node."""
+        if self.timing is not None and self.timing.all is not None:
+            self.write_response_log(Path(self.params["response_log"]))
+        super().destroy_node()
+
+    def write_response_log(self, path: Path) -> None:
+        """Every state-to-command latency (s) to ``path`` (.npy) and the counts to ``path``.json."""
+        lat = np.frombuffer(self.timing.all, dtype=np.float64).copy()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.save(path, lat)
+        summary = {**latency_summary(lat), **self.timing.counters(), "command_timeouts": self.bridge.command_timeouts,
+                   "hold_steps": self.bridge.hold_steps, "late_ticks": self.late_ticks, "steps": self.bridge.steps}
+        path.with_suffix(".json").write_text(json.dumps(summary, indent=1))
+        self.get_logger().info(f"response log: {lat.size} latencies to {path}")
 
     # ------------------------------------------------------------------ reset
     def _on_reset(self, request: ResetSim.Request, response: ResetSim.Response) -> ResetSim.Response:

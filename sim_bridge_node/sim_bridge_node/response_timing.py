@@ -1,0 +1,90 @@
+"""Sensing-to-command timing as the driver sees it (realtime mode).
+
+Every 1 ms tick the driver publishes state k. The command answering state k (its stamp label
+says which state it answers) must arrive before the next tick, or step k+1 runs on an older
+command: a deadline miss. A Franka aborts after about 20 missed cycles in a row, so the longest
+run of consecutive misses is what decides whether a controller could drive the real arm.
+
+``ResponseTiming`` is ROS-free: the node calls ``published`` at each tick and ``answered`` for
+each command, with wall times from the same clock. Misses are counted from the first answer on
+(before it no controller is running and the driver holds the arm).
+"""
+
+from __future__ import annotations
+
+import array
+from collections import OrderedDict
+
+import numpy as np
+
+_PENDING = 64  # states remembered for matching late answers
+
+
+class ResponseTiming:
+    """Latency from publishing a state to receiving the command that answers it, and misses."""
+
+    def __init__(self, keep_all: bool = False) -> None:
+        self._pending: OrderedDict[int, float] = OrderedDict()  # stamp -> publish time, unanswered
+        self._last_stamp: int | None = None
+        self._last_answered = True
+        self.window: list[float] = []  # latencies (s) since the last ``take_window``
+        self.all = array.array("d") if keep_all else None  # every latency (s), for a benchmark
+        self.states = 0  # states published
+        self.answers = 0  # states answered (first answer only)
+        self.late_answers = 0  # answers that came after the next state was published
+        self.misses = 0  # states not answered before the next one
+        self.run = 0  # current run of consecutive misses
+        self.longest_run = 0
+
+    def published(self, stamp_ns: int, now: float) -> None:
+        """State ``stamp_ns`` went out at ``now`` (s); closes the deadline of the previous state."""
+        if self._last_stamp is not None and self.answers:  # misses count from the first answer on
+            if self._last_answered:
+                self.run = 0
+            else:
+                self.misses += 1
+                self.run += 1
+                self.longest_run = max(self.longest_run, self.run)
+        self._last_stamp = stamp_ns
+        self._last_answered = False
+        self._pending[stamp_ns] = now
+        while len(self._pending) > _PENDING:
+            self._pending.popitem(last=False)
+        self.states += 1
+
+    def answered(self, stamp_ns: int, now: float) -> float | None:
+        """A command answering state ``stamp_ns`` arrived at ``now``; returns its latency (s) or
+        None when the state is unknown or already answered."""
+        sent = self._pending.pop(stamp_ns, None)
+        if sent is None:
+            return None
+        latency = now - sent
+        self.answers += 1
+        if stamp_ns == self._last_stamp:
+            self._last_answered = True
+        else:
+            self.late_answers += 1
+        self.window.append(latency)
+        if self.all is not None:
+            self.all.append(latency)
+        return latency
+
+    def take_window(self) -> list[float]:
+        """The latencies since the last call (and start a new window)."""
+        window, self.window = self.window, []
+        return window
+
+    def counters(self) -> dict[str, int]:
+        """Counts since the start."""
+        return {"states": self.states, "answers": self.answers, "late_answers": self.late_answers,
+                "deadline_misses": self.misses, "longest_miss_run": self.longest_run}
+
+
+def latency_summary(latencies_s: np.ndarray | list[float]) -> dict[str, float]:
+    """Median, p90, p99, p99.9 and max of latencies, in microseconds (NaN when empty)."""
+    lat = np.asarray(latencies_s, dtype=np.float64) * 1e6
+    if lat.size == 0:
+        return {k: float("nan") for k in ("p50_us", "p90_us", "p99_us", "p99_9_us", "max_us")}
+    p50, p90, p99, p999 = np.percentile(lat, [50, 90, 99, 99.9])
+    return {"p50_us": float(p50), "p90_us": float(p90), "p99_us": float(p99), "p99_9_us": float(p999),
+            "max_us": float(lat.max())}
