@@ -50,6 +50,7 @@ from .topics import (
     DIAGNOSTICS,
     JOINT_STATES,
     POLICY_PARAMETERS,
+    PUBLISH_DEPTH,
     ROLLOUTS,
     RUN_EPISODE,
     SIM_RESET,
@@ -86,6 +87,7 @@ PARAMETERS = {
     "diagnostics_period": (1.0, "s between /diagnostics messages"),
 }
 STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+PUBLISH_QOS = QoSProfile(depth=PUBLISH_DEPTH, reliability=ReliabilityPolicy.RELIABLE)  # see topics.PUBLISH_DEPTH
 POLICY_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _MODE_NAMES = {MODE_IDLE: "idle", MODE_RUNNING: "running", MODE_SAFE_HOLD: "safe_hold", MODE_RESETTING: "resetting"}
 
@@ -125,7 +127,7 @@ class NFControllerNode(Node):
         self._dim = MultiArrayDimension(label="", size=7, stride=7)
         self._cmd = Float64MultiArray()
         self._cmd.layout.dim = [self._dim]
-        self._cmd_pub = self.create_publisher(Float64MultiArray, COMMANDS, state_qos)
+        self._cmd_pub = self.create_publisher(Float64MultiArray, COMMANDS, PUBLISH_QOS)
         self._status_pub = self.create_publisher(ControllerStatus, CONTROLLER_STATUS, state_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS, state_qos)
         self.create_subscription(JointState, JOINT_STATES, self._on_joint_state, state_qos)
