@@ -2,7 +2,7 @@
 SHELL := /bin/bash
 ENV := source ./env.sh
 
-.PHONY: setup test lint bench run clean
+.PHONY: setup test lint bench bench-deps run clean
 
 setup:  ## create .venv, install pinned packages, build ros2_ws, write env.sh (idempotent)
 	@scripts/setup.sh
@@ -13,8 +13,21 @@ lint: setup  ## ruff over the whole tree
 test: setup  ## set up if needed, then lint and the full test suite
 	@$(ENV) && ruff check . && python -m pytest
 
-bench: setup  ## speed benchmarks; JSON results in bench/results/
+bench: setup bench-deps  ## speed benchmarks; JSON results in bench/results/
 	@$(ENV) && python bench/run_all.py
+
+# Bench-only packages (stable-baselines3, the outside PPO reference): installed here, never by setup/test.
+# Skipped when the stamp matches the pins; if pip fails, the bench still runs and reports SB3 as skipped.
+BENCH_STAMP := .venv/.bench-requirements.sha256
+bench-deps: setup
+	@want=$$(cat requirements/bench.txt requirements/constraints.txt | sha256sum | cut -d' ' -f1); \
+	if [ "$$(cat $(BENCH_STAMP) 2>/dev/null)" != "$$want" ]; then \
+	  echo "[bench] installing requirements/bench.txt"; \
+	  $(ENV) && python -m pip install -q --disable-pip-version-check -r requirements/bench.txt \
+	    -c requirements/constraints.txt 2>&1 | grep -v "is ignored: it is neither a file nor a directory"; \
+	  python -c 'import stable_baselines3' && echo "$$want" > $(BENCH_STAMP) \
+	    || echo "[bench] warning: stable-baselines3 not installed; its comparison will be skipped"; \
+	fi
 
 run: setup  ## the whole stack learning the gear in simulation (lockstep); ARGS="--iterations 20" etc.
 	@$(ENV) && python -m learner_node.stack --config config/gear.yaml $(ARGS)
