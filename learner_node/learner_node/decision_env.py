@@ -1,0 +1,109 @@
+"""The trainer's insertion task one RL decision at a time, for RL code of other projects (no ROS, no gymnasium).
+
+``DecisionEnv`` drives the world and controller of the in-process rollouts (``RolloutRunner``):
+
+- action: a task-space force (N, shape (dim,)) held for one decision period
+  (``steps_per_decision`` physics steps of 1 ms) and applied every millisecond through the same path
+  as the rollout's policy force: for the arm tasks ``FlowController`` (Jacobian transpose, gravity
+  compensation, orientation impedance, joint damping, torque and rate limits, safe hold), for the
+  block the force plus gravity compensation. The controller's own mean force is zero (``ZeroForce``),
+  so the held action is the whole force, as the held noise is in the rollout;
+- observation: what the MLP policy sees, ``[x - x_ref, xdot]`` (controller frame), at the start of
+  the next decision;
+- reward: the rollout's reward of the decision (``reward_terms`` of the state at the end of the
+  period and the action);
+- episode: ``decisions_per_episode`` decisions (a time limit).
+
+Hence ``RolloutRunner.run_episode(ZeroForce(dim), sigma, start, rng)`` and this environment stepped
+with that episode's actions from the same start produce the same states and rewards
+(tests/test_gym_env.py). ``gym_env.InsertionGymEnv`` wraps it as a ``gymnasium.Env``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from nf_controller_node.controller import FlowController
+from nf_controller_node.reward import REWARD_TERMS, RewardWeights, reward_terms
+
+from .config import TrainConfig
+from .rollout import BLOCK_AXES, RolloutRunner
+
+
+class ZeroForce:
+    """A mean-force evaluator that is zero everywhere (``FlowController``'s evaluator interface)."""
+
+    def __init__(self, dim: int) -> None:
+        self.dim = dim
+
+    def force(self, x: np.ndarray, xdot: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """u = 0, written to ``out`` if given."""
+        if out is None:
+            return np.zeros(self.dim)
+        out[:] = 0.0
+        return out
+
+    def potential(self, x: np.ndarray) -> float:
+        """NaN: no potential."""
+        return math.nan
+
+
+class DecisionEnv:
+    """One simulated world of ``cfg``'s task, stepped one decision (held task-space force) at a time."""
+
+    def __init__(self, cfg: TrainConfig) -> None:
+        self.cfg = cfg
+        self.runner = RolloutRunner(cfg)
+        self.dim = cfg.dim
+        self.horizon = cfg.decisions_per_episode
+        self.zero = ZeroForce(self.dim)
+        self.weights = RewardWeights.from_config(cfg)
+        if self.runner.arm is not None:
+            self.runner.controller = FlowController(self.runner.arm, self.zero)
+        self.decision = 0  # decisions taken in the current episode
+        self._u = np.zeros(self.dim)  # the zero mean force the period functions record
+
+    def reset(self, start_seed: int | None) -> np.ndarray:
+        """Start an episode as ``RolloutRunner.run_episode`` does with ``start_seed``; the first observation."""
+        runner = self.runner
+        runner.env.reset(seed=runner.start_seed(start_seed))
+        if runner.controller is not None:
+            runner.controller.reset_rate_limit()
+            runner.controller.clear_fault()
+        self.decision = 0
+        return self.observation()
+
+    def observation(self) -> np.ndarray:
+        """``[x - x_ref, xdot]`` of the current state, as the rollout records it at a decision (new array)."""
+        runner, env = self.runner, self.runner.env
+        if runner.arm is None:
+            x, xdot = env.x[BLOCK_AXES], env.xdot[BLOCK_AXES]
+        else:
+            runner.arm.update(env.q, env.dq)  # what FlowController.step computes from the same joint state
+            x, xdot = runner.arm.x, runner.arm.xdot
+        return np.concatenate([x - runner.x_ref, xdot])
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict[str, float]]:
+        """Hold ``action`` (N) for one decision period; (next observation, reward, episode over, info).
+
+        ``info``: insertion ``depth`` (m) and ``success`` at the end of the period, the mean torque
+        norm beyond gravity of the period (``torque_norm``) and new controller ``faults``.
+        """
+        runner, env, d = self.runner, self.runner.env, self.dim
+        force = np.asarray(action, dtype=np.float64).reshape(d)
+        x0, xdot0 = np.empty(d), np.empty(d)
+        period = runner._arm_period if runner.arm is not None else runner._block_period
+        steps = self.cfg.steps_per_decision
+        torque, faults = period(self.zero, force, steps, x0, xdot0, self._u)
+        if runner.arm is None:
+            dist, vel = env.x[BLOCK_AXES] - runner.x_ref, env.xdot[BLOCK_AXES]
+        else:
+            dist, vel = env.x - runner.goal, env.xdot
+        terms = reward_terms(dist, vel, force, self.weights)
+        reward = float(sum(terms[name] for name in REWARD_TERMS))
+        self.decision += 1
+        info = {"depth": float(env.insertion_depth), "success": bool(env.success),
+                "torque_norm": torque / steps, "faults": faults}
+        return self.observation(), reward, self.decision >= self.horizon, info
