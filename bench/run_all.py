@@ -57,8 +57,13 @@ def main() -> int:
             line = (f"   PPO update: NF {s['nf_update_s']:.2f} s, MLP {s['mlp_update_s']:.2f} s "
                     f"({s['update_nf_over_mlp']:.2f}x)")
             if "iteration_nf_over_mlp" in s:
-                line += (f"; training iteration {s['iteration_nf_over_mlp']:.2f}x "
-                         f"(target <= {s['target_iteration_max']}x)")
+                line += (f"; training iteration NF {s['iteration_nf_s']:.2f} s, MLP {s['iteration_mlp_s']:.2f} s: "
+                         f"{s['iteration_nf_over_mlp']:.2f}x (target <= {s['target_iteration_max']}x)")
+                if "iteration_sb3_s" in s:
+                    line += (f"; stable-baselines3 PPO {s['iteration_sb3_s']:.2f} s: NF/SB3 "
+                             f"{s['iteration_nf_over_sb3']:.2f}x (target <= {s['target_nf_over_sb3_max']}x)")
+                elif "sb3_skipped" in s:
+                    line += f"; stable-baselines3 PPO SKIPPED: {s['sb3_skipped']}"
             print(line)
     bags = _run("bags", [sys.executable, str(HERE / "bench_bags.py"), *(["--quick"] if args.quick else [])])
     if bags is None:
