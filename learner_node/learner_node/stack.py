@@ -134,42 +134,42 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
         lines += [f"Deterministic controller after iteration {evaluation['iteration']} on "
                   f"{evaluation['episodes']} held-out starts: success {evaluation['success_rate']:.2f}, "
                   f"final distance {evaluation['final_distance_mean']:.4f} m.", ""]
+    lines += bag_lines(run_dir / "bag")
     files = sorted(p.relative_to(run_dir) for p in run_dir.rglob("*") if p.is_file())
-    lines += ["Files:", ""] + [f"- `{f}`" for f in files if not str(f).startswith("logs/")] + ["- `logs/`", ""]
+    shown = [f for f in files if not str(f).startswith(("logs/", "bag/"))]
+    lines += ["Files:", ""] + [f"- `{f}`" for f in shown] \
+        + (["- `bag/`"] if (run_dir / "bag").exists() else []) + ["- `logs/`", ""]
     path = run_dir / "summary.md"
     path.write_text("\n".join(lines))
     return path
 
 
 def plot_curves(metrics_path: Path, out: Path, title: str) -> bool:
-    """Learning curves (return, success) of one run as PNG; False when there is nothing to plot."""
-    if not metrics_path.exists():
-        return False
-    rows = json.loads(metrics_path.read_text())
+    """Learning curves of the run (``plots.plot_learning_curves``); False when there is nothing to plot."""
+    rows = json.loads(metrics_path.read_text()) if metrics_path.exists() else []
     if not rows:
         return False
-    import matplotlib
+    from .plots import plot_learning_curves
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    it = [r["iteration"] for r in rows]
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
-    axes[0].plot(it, [r["return_mean"] for r in rows], marker="o")
-    axes[0].set_ylabel("mean return")
-    axes[1].plot(it, [r["success_rate"] for r in rows], marker="o", color="tab:green")
-    axes[1].set_ylabel("success rate")
-    axes[1].set_ylim(-0.05, 1.05)
-    axes[2].plot(it, [r["final_distance_mean"] for r in rows], marker="o", color="tab:red")
-    axes[2].set_ylabel("final distance to goal (m)")
-    for ax in axes:
-        ax.set_xlabel("iteration")
-        ax.grid(alpha=0.3)
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    plot_learning_curves([rows], out, title, label="this run")
     return True
+
+
+def bag_lines(bag: Path) -> list[str]:
+    """Lines for ``summary.md`` about the run's bag (topics and message counts), or why there is none."""
+    if not bag.exists():
+        return ["No bag was recorded (`nf_bags` not importable).", ""]
+    try:
+        from nf_bags import bagfile
+
+        health = bagfile.scan(bag)
+    except Exception as exc:  # a broken bag must not hide the run's results
+        return [f"Bag `{bag.name}/` could not be read: {exc}", ""]
+    counts = ", ".join(f"{t} {n}" for t, n in sorted(health.counts.items()))
+    state = "closed" if health.closed else "NOT closed (see `python -m nf_bags.info --repair`)"
+    size = sum(f.stat().st_size for f in bag.glob("*.mcap")) / 1e6
+    return [f"Bag `{bag.name}/` ({state}, {size:.1f} MB): {sum(health.counts.values())} messages: {counts}. "
+            f"Inspect with `python -m nf_bags.info {bag}`.", ""]
 
 
 def final_video(run_dir: Path) -> Path | None:
