@@ -1,7 +1,7 @@
 """Run every benchmark in sequence (never in parallel: the machine has 2 cores) and collect JSON.
 
 Each benchmark writes bench/results/<name>.json; this prints a one-line summary per target.
-Usage: python bench/run_all.py [--quick]
+Usage: python bench/run_all.py [--quick]   (the realtime benchmark alone takes 11 minutes; --quick: 1 minute)
 """
 
 from __future__ import annotations
@@ -79,6 +79,15 @@ def main() -> int:
         print(f"   lockstep over ROS: median {r['median']:.0f} steps/s (target >= {r['target']:.0f}); PPO iteration "
               f"over ROS {w['over_ros_median']:.1f} s vs in process {w['in_process_median']:.1f} s "
               f"({w['ros_over_in_process']:.1f}x)")
+    realtime = _run("realtime", [sys.executable, str(HERE / "bench_realtime.py"), *(["--quick"] if args.quick else [])])
+    if realtime is None:
+        failed.append("realtime")
+    else:
+        c, e = realtime["controller"], realtime["baseline_echo"]
+        print(f"   realtime 1 kHz ({realtime['seconds']['controller']:.0f} s): latency median {c['p50_us']:.0f} us, "
+              f"p99 {c['p99_us']:.0f} us (target <= {realtime['targets']['p99_us_max']:.0f}), misses "
+              f"{100 * c['miss_fraction']:.2f} %, longest run {c['longest_miss_run']} (target < "
+              f"{realtime['targets']['longest_miss_run_below']}); echo baseline p99 {e['p99_us']:.0f} us")
     if failed:
         print(f"failed: {', '.join(failed)}")
     return 1 if failed else 0
