@@ -3,7 +3,8 @@
 over ROS against the same iteration in process, in the same run.
 
 Starts the three processes (own ROS_DOMAIN_ID, loopback only) ``--repeats`` times, each learner
-doing one iteration; then times the in-process trainer on the same settings. Writes
+doing one iteration; then the floor of the runtime (``pingpong.py``: a bare rclpy round trip
+between two processes, no work) and the in-process trainer on the same settings. Writes
 ``bench/results/stack.json``. Target (issue #6): lockstep >= 3000 steps/s.
 Usage: python bench/bench_stack.py [--quick]
 """
@@ -80,6 +81,15 @@ def main() -> int:
             rows.append(row)
             print(f"over ROS {k + 1}/{repeats}: rollouts {row['rollout_seconds']:.2f} s "
                   f"({steps / row['rollout_seconds']:.0f} steps/s), update {row['update_seconds']:.2f} s", flush=True)
+    floor = []
+    for k in range(repeats):  # the runtime's floor: a bare rclpy round trip between two processes
+        env = dict(os.environ, ROS_DOMAIN_ID=str(150 + (os.getpid() + 7 + k) % 50),
+                   ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        done = subprocess.run([sys.executable, str(HERE / "pingpong.py"), "--seconds", "5"], env=env,
+                              capture_output=True, text=True, timeout=120)
+        floor.append(json.loads(done.stdout.strip().splitlines()[-1]))
+        print(f"rclpy ping-pong floor {k + 1}/{repeats}: {floor[-1]['round_trips_per_s']:.0f} round trips/s",
+              flush=True)
     local = [in_process_iteration(rollouts, seconds) for _ in range(2)]
     rates = [steps / r["rollout_seconds"] for r in rows]
     ros_wall = statistics.median(r["wall_seconds"] for r in rows)
@@ -89,6 +99,9 @@ def main() -> int:
         "cpus": os.cpu_count(), "rollouts": rollouts, "episode_seconds": seconds, "repeats": repeats,
         "lockstep_steps_per_s": {"median": statistics.median(rates), "min": min(rates), "max": max(rates),
                                  "all": rates, "target": TARGET_STEPS_PER_S},
+        "pingpong_floor": {"round_trips_per_s_median": statistics.median(f["round_trips_per_s"] for f in floor),
+                           "median_us": statistics.median(f["median_us"] for f in floor), "all": floor,
+                           "what": "bare rclpy round trip between two processes (bench/pingpong.py), no work"},
         "iteration_wall_s": {"over_ros_median": ros_wall, "in_process_median": local_wall,
                              "ros_over_in_process": ros_wall / local_wall,
                              "over_ros_all": [r["wall_seconds"] for r in rows],

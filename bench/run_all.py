@@ -76,7 +76,8 @@ def main() -> int:
         failed.append("stack")
     else:
         r, w = stack["lockstep_steps_per_s"], stack["iteration_wall_s"]
-        print(f"   lockstep over ROS: median {r['median']:.0f} steps/s (target >= {r['target']:.0f}); PPO iteration "
+        print(f"   lockstep over ROS: median {r['median']:.0f} steps/s (target >= {r['target']:.0f}; bare rclpy "
+              f"ping-pong floor {stack['pingpong_floor']['round_trips_per_s_median']:.0f}/s); PPO iteration "
               f"over ROS {w['over_ros_median']:.1f} s vs in process {w['in_process_median']:.1f} s "
               f"({w['ros_over_in_process']:.1f}x)")
     realtime = _run("realtime", [sys.executable, str(HERE / "bench_realtime.py"), *(["--quick"] if args.quick else [])])
