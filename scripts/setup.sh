@@ -83,6 +83,8 @@ source "$VENV/bin/activate"
 export AMENT_PREFIX_PATH="$VENV\${AMENT_PREFIX_PATH:+:\$AMENT_PREFIX_PATH}"
 source "$ROOT/ros2_ws/install/setup.bash"
 export PYTHONPATH="$ROOT/bags\${PYTHONPATH:+:\$PYTHONPATH}"  # nf_bags (plain Python, not a colcon package)
+# console scripts (train, nf_report, run_stack, render_scene, controller_bench, ...) live in lib/<package>
+export PATH="$ROOT/ros2_ws/install/learner_node/lib/learner_node:$ROOT/ros2_ws/install/nf_controller_node/lib/nf_controller_node:$ROOT/ros2_ws/install/sim_bridge_node/lib/sim_bridge_node:\$PATH"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export MUJOCO_GL=osmesa PYOPENGL_PLATFORM=osmesa
 ENV
