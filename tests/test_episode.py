@@ -21,15 +21,22 @@ NAMES = list(panda_spec.JOINT_NAMES)
 CLOCK = [10_000_000]  # ns, the simulated clock shared by the tests of one loop (never runs backwards)
 
 
-def run_loop_episode(loop: ControlLoop, env: InsertionEnv, spec: EpisodeSpec, start_seed: int) -> EpisodeRun:
-    """Drive ``loop`` like the lockstep node does: one state per step, stamps 1 ms apart."""
+def run_loop_episode(loop: ControlLoop, env: InsertionEnv, spec: EpisodeSpec, start_seed: int,
+                     resend_every: int = 0) -> EpisodeRun:
+    """Drive ``loop`` like the lockstep node does: one state per step, stamps 1 ms apart. With
+    ``resend_every`` = k, every k-th state is sent twice (a lockstep resend) and the second answer
+    is the one applied."""
     env.reset(seed=start_seed)
     run = EpisodeRun(spec)
     stamp = CLOCK[0] = CLOCK[0] + 1_000_000_000
     loop.start_episode(run, stamp)
+    step = 0
     while not run.done:
         loop.depth = env.insertion_depth
         tau, fault = loop.on_joint_state(NAMES, env.q, env.dq, stamp, 0.0)
+        if resend_every and step % resend_every == 0:
+            tau, fault = loop.on_joint_state(NAMES, env.q, env.dq, stamp, 0.0)
+        step += 1
         assert not fault
         env.step(tau.copy())
         stamp += 1_000_000
@@ -89,6 +96,20 @@ def test_resent_state_is_answered_but_not_recorded_twice(gear_setup):
     assert run.steps == 1 and np.array_equal(run.eps[0], eps)
     np.testing.assert_allclose(tau2, tau1, atol=1e-12)
     loop.end_episode()
+
+
+def test_resends_do_not_change_the_episode(gear_setup):
+    """Resent states at every decision start, where large noise makes the torque rate limiter
+    act, leave the episode exactly as without resends."""
+    cfg, trainer, loop, env = gear_setup
+    spec = EpisodeSpec(episode_id=3, policy_version=1, duration=0.1, decision_period=cfg.decision_period,
+                       control_period=0.001, sigma=np.full(3, 40.0), noise_seed=8, x_goal=trainer.x_ref)
+    plain = run_loop_episode(loop, env, spec, 77)
+    q_plain = env.q.copy()
+    resent = run_loop_episode(loop, env, spec, 77, resend_every=10)
+    np.testing.assert_array_equal(env.q, q_plain)
+    np.testing.assert_array_equal(resent.x, plain.x)
+    np.testing.assert_array_equal(resent.reward, plain.reward)
 
 
 def test_episode_refused_without_policy_and_bad_specs():

@@ -147,6 +147,7 @@ class ControlLoop:
         self._episode_from = 0  # ns: the episode starts at the first state stamped at or after this
         self._episode_last = -1  # ns: stamp of the last state the episode consumed
         self._episode_eps = np.zeros(3)
+        self._episode_tau = np.zeros(arm.nq)  # command sent for the last state of the episode
         self._u_mean = np.zeros(3)
         self.depth = float("nan")  # latest insertion depth from the simulator's task status (m), if any
         self.latency = LatencyStats()
@@ -306,16 +307,20 @@ class ControlLoop:
         return tau, new
 
     def _episode_step(self, run: EpisodeRun, q: np.ndarray, dq: np.ndarray, stamp_ns: int) -> np.ndarray:
-        """One step of a running episode: held noise, then the record (a repeated state, i.e. a
-        lockstep resend, is answered with the same noise and not recorded again)."""
+        """One step of a running episode: held noise, then the record. A repeated state (a lockstep
+        resend) gets the very command already sent for it: computing it again would move the torque
+        rate limiter a second time and the episode would no longer be the one the sim steps."""
         ctrl = self.controller
         new = stamp_ns > self._episode_last
+        if not new and not ctrl.fault:
+            return self._episode_tau
         if new:
             if run.steps == 0:
                 ctrl.reset_rate_limit()  # the world was just reset: no rate limit on the first command
             self._episode_eps = run.noise()
         tau = ctrl.step(q, dq, self._episode_eps)
         if new and not ctrl.fault:
+            self._episode_tau[:] = tau
             arm = ctrl.arm
             u_mean = None
             if run.steps % run.P == 0 and run.steps < run.K * run.P:
