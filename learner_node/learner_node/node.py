@@ -13,10 +13,8 @@ incomplete are reported and retried with the same seeds, then dropped.
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
-import signal
 import sys
 import threading
 import time
@@ -31,9 +29,8 @@ from rclpy.action import ActionClient
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
-from rclpy.utilities import remove_ros_args
 
+from nf_controller_node.ros_runtime import run_node
 from nf_controller_node.topics import POLICY_PARAMETERS, ROLLOUTS, RUN_EPISODE
 
 from .config import TrainConfig
@@ -227,43 +224,11 @@ class RosTraining:
 
 def main(argv: list[str] | None = None) -> int:
     """Console script ``learner``: NF-PPO over ROS 2 until the configured iterations are done."""
-    argv = list(sys.argv if argv is None else argv)
-    argparse.ArgumentParser(
-        prog="learner", description=__doc__.split("\n\n")[0],
-        epilog="Settings follow --ros-args, e.g. --ros-args --params-file config/gear.yaml "
-               "-p learner_node:out_dir:=runs/x").parse_args(remove_ros_args(argv)[1:])
     logging.basicConfig(level=logging.INFO, format="[learner] %(message)s", stream=sys.stdout)
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    node = executor = spinner = None
-    try:
-        try:
-            node = LearnerNode()
-        except ValueError as exc:
-            LOG.error("not starting: %s", exc)
-            return 2
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-
-        def spin() -> None:
-            while not stop.is_set() and rclpy.ok():
-                executor.spin_once(timeout_sec=0.05)
-
-        spinner = threading.Thread(target=spin, name="ros-spin", daemon=True)
-        spinner.start()
-        return RosTraining(node, stop).run()
-    finally:
-        stop.set()
-        if spinner is not None:
-            spinner.join(timeout=2.0)
-        if executor is not None:
-            executor.shutdown()
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    return run_node(LearnerNode, "learner", __doc__.split("\n\n")[0], argv,
+                    work=lambda node, stop: RosTraining(node, stop).run(), make_executor=SingleThreadedExecutor,
+                    epilog="Settings follow --ros-args, e.g. --ros-args --params-file config/gear.yaml "
+                           "-p learner_node:out_dir:=runs/x")
 
 
 if __name__ == "__main__":

@@ -28,12 +28,12 @@ from rclpy.utilities import remove_ros_args
 SPIN_SLICE = 0.1  # s, longest wait before the stop flag is looked at
 
 
-def parse_cli(prog: str, description: str, argv: Sequence[str]) -> None:
+def parse_cli(prog: str, description: str, argv: Sequence[str], epilog: str | None = None) -> None:
     """Give the executable a ``--help`` (non-ROS arguments are refused); ROS arguments pass through."""
     parser = argparse.ArgumentParser(
         prog=prog,
         description=description,
-        epilog="Node parameters and remappings follow --ros-args, e.g. "
+        epilog=epilog or "Node parameters and remappings follow --ros-args, e.g. "
         "--ros-args -p mode:=realtime --params-file config/gear.yaml",
     )
     parser.parse_args(remove_ros_args(list(argv))[1:])
@@ -49,27 +49,44 @@ def declare_read_only(node: Node, spec: Mapping[str, tuple[Any, str]]) -> dict[s
     return values
 
 
-def run_node(make_node: Callable[[], Node], prog: str, description: str, argv: Sequence[str] | None = None) -> int:
-    """Run one node until SIGINT/SIGTERM. Returns the exit code (2 when the node refused its parameters)."""
+def run_node(make_node: Callable[[], Node], prog: str, description: str, argv: Sequence[str] | None = None,
+             work: Callable[[Node, threading.Event], int] | None = None,
+             make_executor: Callable[[], Any] = EventsExecutor, epilog: str | None = None) -> int:
+    """Run one node until SIGINT/SIGTERM. Returns the exit code (2 when the node refused its parameters).
+
+    With ``work``, the executor spins in a background thread and ``work(node, stop)`` runs in the
+    main thread; its return value is the exit code, and ``stop`` is set on a signal.
+    """
     argv = list(sys.argv if argv is None else argv)
-    parse_cli(prog, description, argv)
+    parse_cli(prog, description, argv, epilog)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     node: Node | None = None
-    executor = None
+    executor = spinner = None
     try:
         try:
             node = make_node()
         except (ValueError, ParameterException) as exc:  # bad parameters: the node says which and why
             get_logger(prog).fatal(f"not starting: {exc}")
             return 2
-        executor = EventsExecutor()
+        executor = make_executor()
         executor.add_node(node)
-        while not stop.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=SPIN_SLICE)
-        return 0
+
+        def spin() -> None:
+            while not stop.is_set() and rclpy.ok():
+                executor.spin_once(timeout_sec=SPIN_SLICE)
+
+        if work is None:
+            spin()
+            return 0
+        spinner = threading.Thread(target=spin, name="ros-spin", daemon=True)
+        spinner.start()
+        return work(node, stop)
     finally:
+        stop.set()
+        if spinner is not None:
+            spinner.join(timeout=2.0)
         if executor is not None:
             executor.shutdown()
         if node is not None:
