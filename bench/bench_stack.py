@@ -35,7 +35,8 @@ def ros_iteration(rollouts: int, seconds: float, domain: int, workdir: Path) -> 
     procs = [subprocess.Popen([sys.executable, "-m", mod, *params, *extra], env=env, stdout=subprocess.DEVNULL,
                               stderr=subprocess.STDOUT)
              for mod, extra in (("sim_bridge_node.node", []),
-                                ("nf_controller_node.node", ["-p", "nf_controller:idle_mode:=pause"]))]
+                                ("nf_controller_node.node", ["-p", "nf_controller:idle_mode:=pause",
+                                                             "-p", "nf_controller:max_consecutive_misses:=0"]))]
     try:
         out = workdir / f"run{domain}"
         learner = subprocess.run(

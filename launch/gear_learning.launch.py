@@ -21,7 +21,7 @@ def generate_launch_description() -> LaunchDescription:
         Node(package="sim_bridge_node", executable="sim_bridge", name="sim_bridge", output="screen",
              parameters=[config]),
         Node(package="nf_controller_node", executable="nf_controller", name="nf_controller", output="screen",
-             parameters=[config, {"idle_mode": "pause"}]),
+             parameters=[config, {"idle_mode": "pause", "max_consecutive_misses": 0}]),  # lockstep sim waits
         Node(package="learner_node", executable="learner", name="learner_node", output="screen",
              parameters=[config, {"out_dir": LaunchConfiguration("out_dir"),
                                   "iterations": LaunchConfiguration("iterations")}]),

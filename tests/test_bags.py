@@ -68,8 +68,8 @@ def episode_bag(tmp_path_factory):
     diags = probe.collect(DiagnosticArray, "/diagnostics", RELIABLE)
     rec = RosProcess(["-m", "nf_bags.record", "-o", str(bag)], domain, tmp / "recorder.log")
     sim = RosProcess(SIM, domain, tmp / "sim.log")
-    ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "-p", "idle_mode:=pause"], domain,
-                     tmp / "controller.log")
+    ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "-p", "idle_mode:=pause",
+                      "-p", "max_consecutive_misses:=0"], domain, tmp / "controller.log")
     out = {"bag": bag, "tmp": tmp}
     try:
         policy = policy_msg(InsertionEnv("gear").goal_position, version=7)
@@ -303,7 +303,8 @@ def test_offline_ppo_update_from_a_bag_equals_the_learner_iteration(tmp_path):
     sim = RosProcess(["-m", "sim_bridge_node.node", "--ros-args", "--params-file", config], domain,
                      tmp_path / "sim.log")
     ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "--params-file", config,
-                      "-p", "nf_controller:idle_mode:=pause"], domain, tmp_path / "controller.log")
+                      "-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0"],
+                     domain, tmp_path / "controller.log")
     try:
         # the rollouts topic exists once the controller is up; the policy topic once the learner is
         wait_recording(rec, probe, ["/rollouts"], 30)

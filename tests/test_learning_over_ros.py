@@ -34,7 +34,8 @@ SHORT = {"episode_seconds": 0.5, "rollouts_per_iter": 3, "eval_episodes": 0}
 def stack(domain: int, tmp: Path, idle_mode: str) -> tuple[RosProcess, RosProcess]:
     sim = RosProcess(["-m", "sim_bridge_node.node", "--ros-args", "--params-file", CONFIG], domain, tmp / "sim.log")
     ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "--params-file", CONFIG,
-                      "-p", f"nf_controller:idle_mode:={idle_mode}"], domain, tmp / "controller.log")
+                      "-p", f"nf_controller:idle_mode:={idle_mode}", "-p", "nf_controller:max_consecutive_misses:=0"],
+                     domain, tmp / "controller.log")
     return sim, ctl
 
 

@@ -98,7 +98,10 @@ def node_commands(config: Path, run_dir: Path, iterations: int, extra: Sequence[
     params = ["--ros-args", "--params-file", str(config)]
     cmds = {
         "sim": [py, "-m", "sim_bridge_node.node", *params],
-        "controller": [py, "-m", "nf_controller_node.node", *params, "-p", "nf_controller:idle_mode:=pause"],
+        "controller": [py, "-m", "nf_controller_node.node", *params, "-p", "nf_controller:idle_mode:=pause",
+                       # lockstep: the sim waits for each command, so a slow step is no danger and
+                       # must not latch the safe hold (a busy machine would stop the run)
+                       "-p", "nf_controller:max_consecutive_misses:=0"],
         "learner": [py, "-m", "learner_node.node", *params, "-p", f"learner_node:out_dir:={run_dir / 'learner'}",
                     "-p", f"learner_node:iterations:={iterations}", *extra],
     }
