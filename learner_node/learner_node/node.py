@@ -76,6 +76,7 @@ class LearnerNode(Node):
         self.create_subscription(RolloutChunk, ROLLOUTS, self.chunks.add, CHUNK_QOS)
         self._action = ActionClient(self, RunEpisode, RUN_EPISODE)
         self.success_depth = 0.016  # m; set from the trainer's scene by RosTraining
+        self.spin_lock = threading.Lock()  # held by each executor spin slice (ros_runtime.run_node)
 
     def publish_policy(self, trainer: Trainer) -> int:
         """Publish the trainer's policy as version = completed iterations; returns the version."""
@@ -94,16 +95,19 @@ class LearnerNode(Node):
         goal = RunEpisode.Goal(policy_version=version, seed=-1 if start_seed is None else int(start_seed),
                                noise_seed=int(noise_seed), duration=self.cfg.episode_seconds,
                                deterministic=deterministic)
-        sent = self._action.send_goal_async(goal)
+        with self.spin_lock:  # see ros_runtime.run_node: the response must not be handled before the send returns
+            sent = self._action.send_goal_async(goal)
         deadline = time.monotonic() + timeout
         if not _wait(sent, deadline):
             raise EpisodeFailedError("the controller did not answer the episode goal")
         handle = sent.result()
         if not handle.accepted:
             raise EpisodeFailedError("the controller rejected the episode goal")
-        done = handle.get_result_async()
+        with self.spin_lock:
+            done = handle.get_result_async()
         if not _wait(done, deadline):
-            handle.cancel_goal_async()
+            with self.spin_lock:
+                handle.cancel_goal_async()
             raise EpisodeFailedError(f"episode not finished within {timeout:.0f} s")
         result = done.result().result
         if not result.completed:

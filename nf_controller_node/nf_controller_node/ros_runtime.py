@@ -10,6 +10,7 @@ spun in short ``spin_once`` slices that check it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import sys
 import threading
@@ -26,6 +27,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 SPIN_SLICE = 0.1  # s, longest wait before the stop flag is looked at
+WORK_SPIN_SLICE = 0.005  # s, the same with a main-thread ``work`` (it may wait this long for the spin lock)
 
 
 def parse_cli(prog: str, description: str, argv: Sequence[str], epilog: str | None = None) -> None:
@@ -55,7 +57,10 @@ def run_node(make_node: Callable[[], Node], prog: str, description: str, argv: S
     """Run one node until SIGINT/SIGTERM. Returns the exit code (2 when the node refused its parameters).
 
     With ``work``, the executor spins in a background thread and ``work(node, stop)`` runs in the
-    main thread; its return value is the exit code, and ``stop`` is set on a signal.
+    main thread; its return value is the exit code, and ``stop`` is set on a signal. If the node
+    has a ``spin_lock`` (a ``threading.Lock``), each spin slice holds it, so the main thread can
+    make calls that must not interleave with the executor (rclpy 7.1's ``ActionClient.send_goal_async``
+    registers its request only after sending it: a fast response handled in between is dropped).
     """
     argv = list(sys.argv if argv is None else argv)
     parse_cli(prog, description, argv, epilog)
@@ -73,9 +78,13 @@ def run_node(make_node: Callable[[], Node], prog: str, description: str, argv: S
         executor = make_executor()
         executor.add_node(node)
 
+        lock = getattr(node, "spin_lock", None) or contextlib.nullcontext()
+        slice_s = SPIN_SLICE if work is None else WORK_SPIN_SLICE
+
         def spin() -> None:
             while not stop.is_set() and rclpy.ok():
-                executor.spin_once(timeout_sec=SPIN_SLICE)
+                with lock:
+                    executor.spin_once(timeout_sec=slice_s)
 
         if work is None:
             spin()
