@@ -146,6 +146,7 @@ class ControlLoop:
         self.episode: EpisodeRun | None = None
         self._episode_from = 0  # ns: the episode starts at the first state stamped at or after this
         self._episode_last = -1  # ns: stamp of the last state the episode consumed
+        self.resetting = False  # the world is being reset for an episode: answer no state
         self._episode_eps = np.zeros(3)
         self._episode_tau = np.zeros(arm.nq)  # command sent for the last state of the episode
         self._u_mean = np.zeros(3)
@@ -331,7 +332,10 @@ class ControlLoop:
         return tau
 
     def answers(self, stamp_ns: int) -> bool:
-        """False for a state that idle_mode "pause" leaves unanswered (no episode wants it)."""
+        """False for a state left unanswered: during a reset (``resetting``), and with idle_mode
+        "pause" when no episode wants it."""
+        if self.resetting:
+            return False
         if self.config.idle_mode != "pause":
             return True
         return self.episode is not None and stamp_ns >= self._episode_from

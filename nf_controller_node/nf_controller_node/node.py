@@ -142,6 +142,7 @@ class NFControllerNode(Node):
         self._episode_done: Future | None = None
         self._goal = None
         self._resetting = False
+        self._unanswered: JointState | None = None  # the last state left unanswered (see _release_states)
         ActionServer(self, RunEpisode, RUN_EPISODE, execute_callback=self._execute,
                      goal_callback=self._on_goal, cancel_callback=self._on_cancel)
         self.create_timer(0.2, self._publish_feedback)
@@ -164,6 +165,7 @@ class NFControllerNode(Node):
         stamp_ns = stamp.sec * 1_000_000_000 + stamp.nanosec
         loop = self.loop
         if not loop.answers(stamp_ns):
+            self._unanswered = msg  # answered when the episode starts, if it is the reset state
             return
         tau, new_fault = loop.on_joint_state(msg.name, msg.position, msg.velocity, stamp_ns, time.monotonic())
         self._dim.label = stamp_label(stamp_ns)  # lockstep handshake
@@ -178,6 +180,17 @@ class NFControllerNode(Node):
             self.get_logger().error(f"bad joint state rejected ({self.loop.bad_inputs} so far); holding: "
                                     f"{self.loop.fault}", throttle_duration_sec=1.0)
         self._bad_logged = self.loop.bad_inputs
+
+    def _release_states(self) -> None:
+        """End a reset: answer states again, first the one that came in meanwhile. Without this
+        pause an idle hold could answer the reset state before the episode starts, and the sim
+        would step the new world once with a hold torque (only when the reply and the state are
+        handled out of order, i.e. on a busy machine). Answering the kept state at once saves the
+        lockstep sim its resend wait."""
+        self.loop.resetting = False
+        held, self._unanswered = self._unanswered, None
+        if held is not None:
+            self._on_joint_state(held)
 
     def _publish_command(self, tau: np.ndarray) -> None:
         self._cmd.data = array.array("d", tau.tobytes())
@@ -269,6 +282,7 @@ class NFControllerNode(Node):
         finally:
             self._goal = None
             self._resetting = False
+            self._release_states()  # a failed reset must not leave the states unanswered
         if result.completed:
             gh.succeed()
         elif gh.is_cancel_requested:
@@ -293,6 +307,7 @@ class NFControllerNode(Node):
         first_stamp = 0
         if self._reset_client is not None:
             self._resetting = True
+            loop.resetting = True  # answer no state until the episode starts (see _release_states)
             if not await self._wait_until(self._reset_client.service_is_ready, 5.0):
                 result.message = f"reset service {p['reset_service']} not available"
                 return result
@@ -315,6 +330,7 @@ class NFControllerNode(Node):
         self._episode_done = Future()
         loop.depth = float("nan")
         loop.start_episode(run, first_stamp)
+        self._release_states()
         problem = await self._episode_done
         result.episode_id = spec.episode_id
         result.n_chunks = run.chunks_sent
