@@ -130,6 +130,8 @@ def run_phase(name: str, seconds: float, domain: int, workdir: Path, log_dir: Pa
           f"p99.9 {summary['p99_9_us']:.0f} us, max {summary['max_us']:.0f} us; misses {summary['deadline_misses']} "
           f"({100 * summary['miss_fraction']:.3f} %), longest run {summary['longest_miss_run']}, "
           f"command timeouts {summary['command_timeouts']}", flush=True)
+    for run in summary.get("long_miss_runs", []):
+        print(f"[{name}]   {run['misses']} misses in a row at {run['at_s']:.1f} s", flush=True)
     return summary
 
 

@@ -35,6 +35,18 @@ def test_misses_count_only_after_the_first_answer_and_runs_are_tracked():
     assert c["longest_miss_run"] == 4  # 5..8
     assert c["late_answers"] == 1
     assert t.run == 1
+    assert t.long_runs == []  # runs shorter than LONG_RUN are not kept
+
+
+def test_long_runs_are_kept_with_their_time():
+    t = ResponseTiming()
+    t.published(0, 0.0)
+    t.answered(0, 0.0002)
+    for k in range(1, 9):  # states 1..7 unanswered: a run of 7 starting at state 2's tick
+        t.published(k, k * 1e-3)
+    t.answered(8, 8.3e-3)
+    t.published(9, 9e-3)
+    assert t.long_runs == [(pytest.approx(2e-3 - 2e-4), 7)]
 
 
 def test_window_is_taken_and_reset():

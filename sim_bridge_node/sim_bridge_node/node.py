@@ -249,7 +249,8 @@ class SimBridgeNode(Node):
         path.parent.mkdir(parents=True, exist_ok=True)
         np.save(path, lat)
         summary = {**latency_summary(lat), **self.timing.counters(), "command_timeouts": self.bridge.command_timeouts,
-                   "hold_steps": self.bridge.hold_steps, "late_ticks": self.late_ticks, "steps": self.bridge.steps}
+                   "hold_steps": self.bridge.hold_steps, "late_ticks": self.late_ticks, "steps": self.bridge.steps,
+                   "long_miss_runs": [{"at_s": round(t, 3), "misses": n} for t, n in self.timing.long_runs]}
         path.with_suffix(".json").write_text(json.dumps(summary, indent=1))
         self.get_logger().info(f"response log: {lat.size} latencies to {path}")
 

@@ -18,6 +18,7 @@ from collections import OrderedDict
 import numpy as np
 
 _PENDING = 64  # states remembered for matching late answers
+LONG_RUN = 5  # runs of at least this many misses are kept with their time (``long_runs``)
 
 
 class ResponseTiming:
@@ -35,13 +36,20 @@ class ResponseTiming:
         self.misses = 0  # states not answered before the next one
         self.run = 0  # current run of consecutive misses
         self.longest_run = 0
+        self.long_runs: list[tuple[float, int]] = []  # (s since the first answer, length) of runs >= LONG_RUN
+        self._first_answer: float | None = None
+        self._run_start = 0.0
 
     def published(self, stamp_ns: int, now: float) -> None:
         """State ``stamp_ns`` went out at ``now`` (s); closes the deadline of the previous state."""
         if self._last_stamp is not None and self.answers:  # misses count from the first answer on
             if self._last_answered:
+                if self.run >= LONG_RUN:
+                    self.long_runs.append((self._run_start - self._first_answer, self.run))
                 self.run = 0
             else:
+                if self.run == 0:
+                    self._run_start = now
                 self.misses += 1
                 self.run += 1
                 self.longest_run = max(self.longest_run, self.run)
@@ -59,6 +67,8 @@ class ResponseTiming:
         if sent is None:
             return None
         latency = now - sent
+        if self._first_answer is None:
+            self._first_answer = now
         self.answers += 1
         if stamp_ns == self._last_stamp:
             self._last_answered = True
