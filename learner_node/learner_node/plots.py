@@ -19,7 +19,8 @@ import numpy as np
 
 CURVE_KEYS = (("return_mean", "mean return"), ("success_rate", "success rate"),
               ("final_distance_mean", "final distance to goal (m)"))
-_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
+_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:gray",
+           "tab:olive", "tab:cyan")
 
 
 def _pyplot():  # returns the pyplot module
@@ -52,12 +53,13 @@ def plot_learning_curve_groups(groups: Mapping[str, Sequence[Sequence[Mapping[st
     fig, axes = plt.subplots(1, len(CURVE_KEYS), figsize=(4.2 * len(CURVE_KEYS), 3.4))
     for g, (label, histories) in enumerate(groups.items()):
         color = _COLORS[g % len(_COLORS)]
+        style = "--" if g >= len(_COLORS) else "-"  # more groups than colours: dashed for the second round
         seeds = sum(1 for h in histories if h)
         for ax, (key, _) in zip(axes, CURVE_KEYS, strict=True):
             it, mean, lo, hi = curve_stats(histories, key)
             if it.size == 0:
                 continue
-            ax.plot(it, mean, color=color, label=f"{label} ({seeds} seed{'s' if seeds != 1 else ''})")
+            ax.plot(it, mean, color=color, linestyle=style, label=f"{label} ({seeds} seed{'s' if seeds != 1 else ''})")
             if seeds > 1:
                 ax.fill_between(it, lo, hi, color=color, alpha=0.2, linewidth=0)
     for ax, (key, ylabel) in zip(axes, CURVE_KEYS, strict=True):
