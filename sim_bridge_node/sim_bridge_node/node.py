@@ -115,6 +115,7 @@ class SimBridgeNode(Node):
         self._last_tick = None
         self._window = (time.monotonic(), 0, 0.0)  # wall time, steps, sim time at the last report
         self.timing = None if self.lockstep else ResponseTiming(keep_all=bool(p["response_log"]))
+        self._answers: int | None = None  # stamp the last command said it answers (parsed once, in _accept)
         if self.lockstep:
             self.create_timer(p["lockstep_resend"] / 2.0, self._on_resend_check)
         else:
@@ -135,14 +136,12 @@ class SimBridgeNode(Node):
 
     def _on_command_realtime(self, msg: Float64MultiArray) -> None:
         now = time.perf_counter()
-        if self._accept(msg) and msg.layout.dim:
-            answers = parse_stamp_label(msg.layout.dim[0].label)
-            if answers is not None:
-                self.timing.answered(answers, now)
+        if self._accept(msg) and self._answers is not None:
+            self.timing.answered(self._answers, now)
 
     def _accept(self, msg: Float64MultiArray) -> bool:
         dims = msg.layout.dim
-        answers = parse_stamp_label(dims[0].label) if dims else None
+        answers = self._answers = parse_stamp_label(dims[0].label) if dims else None
         outcome = self.bridge.accept_command(msg.data, time.monotonic(), answers)
         if outcome == BAD:
             self.get_logger().error(f"ignoring effort command: {self.bridge.last_error} "
