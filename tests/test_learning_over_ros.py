@@ -130,9 +130,19 @@ def test_controller_unchanged_against_a_hardware_like_driver(tmp_path):
     chunks = probe.collect(RolloutChunk, "rollouts", RELIABLE)
     status = probe.collect(ControllerStatus, "controller_status", RELIABLE)
     driver = RosProcess([str(REPO / "tests" / "peers" / "hw_driver.py")], domain, tmp_path / "driver.log")
+    # Timing safety stays on, but loose: this shared, non-realtime machine can stall a process for
+    # tens of ms, and a latched hold would stop the arm for the rest of the test. Latching on stale
+    # states and on runs of misses is tested in test_nodes_core.
     ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "-p", "gravity_compensation:=false",
-                      "-p", "reset_service:=''", "-p", "idle_mode:=policy", "-p", "state_timeout:=0.05"],
+                      "-p", "reset_service:=''", "-p", "idle_mode:=policy", "-p", "state_timeout:=0.5",
+                      "-p", "max_consecutive_misses:=500"],
                      domain, tmp_path / "controller.log")
+
+    def report() -> str:
+        last = status[-1][1] if status else None
+        where = f"mode {last.mode}, fault {last.fault!r}" if last else "no status"
+        return f"{len(states)} states received; controller {where}\n{ctl.log()}\n{driver.log()}"
+
     try:
         assert probe.spin_until(lambda: len(states) > 100, 30), driver.log()
         x0 = arm.tcp_position(states[-1][1][0])
@@ -140,20 +150,20 @@ def test_controller_unchanged_against_a_hardware_like_driver(tmp_path):
         pub = probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", LATCHED)
         pub.publish(policy_msg(goal, version=3))
         # the controller may still be loading its compiled kernels (cold cache on a fresh clone)
-        assert probe.spin_until(lambda: status and status[-1][1].policy_version == 3, 60), ctl.log()
+        assert probe.spin_until(lambda: status and status[-1][1].policy_version == 3, 60), report()
 
         def distance() -> float:
             return float(np.linalg.norm(arm.tcp_position(states[-1][1][0]) - goal))
 
-        assert probe.spin_until(lambda: distance() < 0.005, 10), (distance(), ctl.log())
+        assert probe.spin_until(lambda: distance() < 0.005, 10), f"distance {distance():.4f} m; {report()}"
         client = ActionClient(probe.node, RunEpisode, "run_episode")
         assert client.wait_for_server(timeout_sec=10)
         sent = client.send_goal_async(RunEpisode.Goal(policy_version=3, seed=-1, noise_seed=1, duration=0.5))
         assert probe.spin_until(sent.done, 10) and sent.result().accepted
         done = sent.result().get_result_async()
-        assert probe.spin_until(done.done, 20), ctl.log()
+        assert probe.spin_until(done.done, 20), report()
         result = done.result().result
-        assert result.completed, result.message
+        assert result.completed, f"{result.message}; {report()}"
         assert probe.spin_until(lambda: len(chunks) >= result.n_chunks, 5)
         assert [c.seq for _, c in chunks] == list(range(result.n_chunks)) and chunks[-1][1].final
         assert sum(len(c.t) for _, c in chunks) == 50
