@@ -60,8 +60,10 @@ def test_bad_values_give_clear_errors(overrides, message):
 def test_task_yaml_files_load(task):
     cfg = TrainConfig.from_sources(CONFIG_DIR / f"{task}.yaml")
     assert cfg.task == task
-    # the files hold the paper's defaults, except the gear's gains (config/gear.yaml says why)
-    gains = {"sigma_init": 1.0, "stiffness": 300.0, "stiffness_axial": 60.0, "damping": 40.0} if task == "gear" else {}
+    # the files hold the paper's defaults, except the gains (each YAML file says why)
+    gains = {"gear": {"sigma_init": 1.0, "stiffness": 300.0, "stiffness_axial": 60.0, "damping": 40.0},
+             "peg": {"stiffness": 300.0, "stiffness_axial": 60.0, "damping": 40.0},
+             "block": {"stiffness": 100.0, "damping": 20.0}}[task]
     assert cfg == TrainConfig(task=task, **gains)
 
 

@@ -38,7 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code (0 ok, 2 bad settings)."""
     ap = _parser()
     args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(message)s")
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    if args.verbose:  # ours only: matplotlib's font search alone would print hundreds of DEBUG lines
+        logging.getLogger("learner_node").setLevel(logging.DEBUG)
     overrides: dict[str, object] = {}
     for flag, key in (("task", "task"), ("policy", "policy"), ("sigma_init", "sigma_init"), ("seed", "seed"),
                       ("iterations", "iterations")):
