@@ -236,6 +236,7 @@ def test_realtime_sim_holds_arm_when_controller_is_killed(probe_and_domain, tmp_
 
 @pytest.mark.parametrize(("args", "reason"), [
     ([*SIM, "-p", "mode:=fast"], "mode must be one of"),
+    ([*SIM, "-p", "mode:=realtime", "-p", "response_log:=/proc/no/such/latency.npy"], "response_log: cannot create"),
     ([*CONTROLLER, "-p", "held_part:=anvil"], "held_part must be"),
 ])
 def test_nodes_refuse_bad_parameters(args, reason, tmp_path: Path):

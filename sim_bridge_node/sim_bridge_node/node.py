@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import array
 import json
+import os
 import time
 from pathlib import Path
 
@@ -55,7 +56,7 @@ PARAMETERS = {
     "task_status_rate": (50.0, "task_status messages per s of simulated time (0: off)"),
     "clock_period": (0.001, "s of simulated time between clock messages (0: every step)"),
     "diagnostics_period": (1.0, "s of wall time between /diagnostics messages"),
-    "response_log": ("", "realtime: write every state-to-command latency here at shutdown (.npy, + .json summary)"),
+    "response_log": ("", "realtime: every latency to this .npy (+ .json summary) at shutdown; folder checked at start"),
 }
 
 STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)  # ros2_control's default
@@ -77,6 +78,14 @@ def _check(p: dict) -> None:
     for name in ("task_status_rate", "clock_period"):
         if not p[name] >= 0.0:
             raise ValueError(f"{name} must be >= 0, got {p[name]}")
+    if p["response_log"]:  # fail now, not after a long run when the log is written at shutdown
+        folder = Path(p["response_log"]).parent
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ValueError(f"response_log: cannot create folder {folder}: {exc}") from None
+        if not os.access(folder, os.W_OK):
+            raise ValueError(f"response_log: folder {folder} is not writable")
 
 
 class SimBridgeNode(Node):
