@@ -173,6 +173,19 @@ def test_ppo_update_stops_at_target_kl():
     assert stats["epochs"] == 1
 
 
+def test_target_kl_stops_within_an_epoch_before_a_runaway_step():
+    """A step size that blows the policy up within one epoch: the minibatch check stops it there."""
+    def update(target_kl: float) -> dict[str, float]:
+        policy = MLPPolicy(2, 16, sigma_init=0.3, seed=0)
+        opt = torch.optim.Adam(policy.parameters(), lr=0.1)
+        settings = PPOSettings(update_epochs=3, minibatch_size=16, target_kl=target_kl)
+        return ppo_update(policy, opt, _toy_batch(policy), settings, np.random.default_rng(0))
+
+    free, limited = update(0.0), update(0.01)
+    assert free["epochs"] == 3 and free["approx_kl"] > 1.0
+    assert limited["epochs"] == 1 and limited["approx_kl"] < 0.1 * free["approx_kl"]
+
+
 # ---- MLP policy: torch module == compiled evaluator ------------------------------------------------
 
 

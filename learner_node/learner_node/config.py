@@ -108,7 +108,8 @@ class TrainConfig:
     max_grad_norm: float = 0.0
     """Clip the gradient norm to this value (0: no clipping)."""
     target_kl: float = 0.0
-    """Stop an update's epochs early once the epoch's mean approx_kl exceeds this (0: never)."""
+    """Stop an update once a minibatch shows approx_kl > 1.5 x this before its step, as
+    stable-baselines3 does (0: never)."""
     reward_w: float = 1.0
     """Reward weight w of the squared distance |d|^2 (d in m)."""
     reward_v: float = 2.0

@@ -11,6 +11,7 @@ check them against small cases computed by hand.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Protocol
@@ -275,19 +276,26 @@ def ppo_update(
 
     Each epoch visits a fresh permutation from ``rng`` in minibatches of ``minibatch_size`` (the last
     one may be smaller). Reports the mean policy loss, value loss and clip fraction over all
-    minibatches, the epochs run, and ``approx_kl``: KL(old || new) estimated over the whole batch
-    after the update.
+    minibatches, the epochs begun, and ``approx_kl``: KL(old || new) estimated over the whole batch
+    after the update. With ``target_kl`` the update stops before the first minibatch step whose
+    minibatch already shows an approx_kl above 1.5 x target_kl (stable-baselines3's rule).
     """
     n = len(batch)
     params = [p for group in optimizer.param_groups for p in group["params"]]
     pg_losses, v_losses, clip_fracs = [], [], []
     epochs_run = 0
+    kl_limit = 1.5 * settings.target_kl if settings.target_kl > 0.0 else math.inf
+    stop = False
     for _ in range(settings.update_epochs):
         perm = torch.from_numpy(rng.permutation(n))
-        epoch_kl = []
+        epochs_run += 1
         for start in range(0, n, settings.minibatch_size):
             idx = perm[start : start + settings.minibatch_size]
             new_lp = policy.log_prob(batch.x[idx], batch.xdot[idx], batch.action[idx])
+            with torch.no_grad():  # how far the steps so far have moved the policy, on fresh samples
+                if float(approx_kl(new_lp, batch.old_log_prob[idx])) > kl_limit:
+                    stop = True
+                    break
             pg_loss, clip_frac = clipped_surrogate_loss(
                 new_lp, batch.old_log_prob[idx], batch.advantages[idx], settings.clip_coef
             )
@@ -303,17 +311,14 @@ def ppo_update(
             optimizer.step()
             pg_losses.append(float(pg_loss.detach()))
             clip_fracs.append(float(clip_frac))
-            with torch.no_grad():
-                epoch_kl.append(float(approx_kl(new_lp, batch.old_log_prob[idx])))
-        epochs_run += 1
-        if settings.target_kl > 0.0 and float(np.mean(epoch_kl)) > settings.target_kl:
+        if stop:
             break
     with torch.no_grad():
         kl = float(approx_kl(policy.log_prob(batch.x, batch.xdot, batch.action), batch.old_log_prob))
     return {
-        "pg_loss": float(np.mean(pg_losses)),
+        "pg_loss": float(np.mean(pg_losses)) if pg_losses else math.nan,
         "v_loss": float(np.mean(v_losses)) if v_losses else float("nan"),
-        "clip_frac": float(np.mean(clip_fracs)),
+        "clip_frac": float(np.mean(clip_fracs)) if clip_fracs else math.nan,
         "approx_kl": kl,
         "epochs": float(epochs_run),
     }
