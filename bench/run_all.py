@@ -26,6 +26,32 @@ def _run(name: str, cmd: list[str]) -> dict | None:
     return json.loads(out.read_text()) if done.returncode == 0 and out.exists() else None
 
 
+def _bags_line(bags: dict) -> str:
+    return (f"   recording: {bags['messages_per_s']:.0f} msg/s, {bags['payload_mb_per_s']:.2f} MB/s, recorder CPU "
+            f"{100 * bags['recorder_cpu_fraction']:.0f} % of a core, no drops: {bags['no_drops']}")
+
+
+def _stack_line(stack: dict) -> str:
+    r, w = stack["lockstep_steps_per_s"], stack["iteration_wall_s"]
+    return (f"   lockstep over ROS: median {r['median']:.0f} steps/s (target >= {r['target']:.0f}; bare rclpy "
+            f"ping-pong floor {stack['pingpong_floor']['round_trips_per_s_median']:.0f}/s); PPO iteration "
+            f"over ROS {w['over_ros_median']:.1f} s vs in process {w['in_process_median']:.1f} s "
+            f"({w['ros_over_in_process']:.1f}x)")
+
+
+def _realtime_line(realtime: dict) -> str:
+    c, e = realtime["controller"], realtime["baseline_echo"]
+    return (f"   realtime 1 kHz ({realtime['seconds']['controller']:.0f} s): latency median {c['p50_us']:.0f} us, "
+            f"p99 {c['p99_us']:.0f} us (target <= {realtime['targets']['p99_us_max']:.0f}), misses "
+            f"{100 * c['miss_fraction']:.2f} %, longest run {c['longest_miss_run']} (target < "
+            f"{realtime['targets']['longest_miss_run_below']}); echo baseline p99 {e['p99_us']:.0f} us")
+
+
+# (name, script, one-line summary of its JSON): run in this order after the ROS-free benchmarks
+_ROS_BENCHMARKS = (("bags", "bench_bags.py", _bags_line), ("stack", "bench_stack.py", _stack_line),
+                   ("realtime", "bench_realtime.py", _realtime_line))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer calls, for a smoke run")
@@ -65,30 +91,13 @@ def main() -> int:
                 elif "sb3_skipped" in s:
                     line += f"; stable-baselines3 PPO SKIPPED: {s['sb3_skipped']}"
             print(line)
-    bags = _run("bags", [sys.executable, str(HERE / "bench_bags.py"), *(["--quick"] if args.quick else [])])
-    if bags is None:
-        failed.append("bags")
-    else:
-        print(f"   recording: {bags['messages_per_s']:.0f} msg/s, {bags['payload_mb_per_s']:.2f} MB/s, recorder CPU "
-              f"{100 * bags['recorder_cpu_fraction']:.0f} % of a core, no drops: {bags['no_drops']}")
-    stack = _run("stack", [sys.executable, str(HERE / "bench_stack.py"), *(["--quick"] if args.quick else [])])
-    if stack is None:
-        failed.append("stack")
-    else:
-        r, w = stack["lockstep_steps_per_s"], stack["iteration_wall_s"]
-        print(f"   lockstep over ROS: median {r['median']:.0f} steps/s (target >= {r['target']:.0f}; bare rclpy "
-              f"ping-pong floor {stack['pingpong_floor']['round_trips_per_s_median']:.0f}/s); PPO iteration "
-              f"over ROS {w['over_ros_median']:.1f} s vs in process {w['in_process_median']:.1f} s "
-              f"({w['ros_over_in_process']:.1f}x)")
-    realtime = _run("realtime", [sys.executable, str(HERE / "bench_realtime.py"), *(["--quick"] if args.quick else [])])
-    if realtime is None:
-        failed.append("realtime")
-    else:
-        c, e = realtime["controller"], realtime["baseline_echo"]
-        print(f"   realtime 1 kHz ({realtime['seconds']['controller']:.0f} s): latency median {c['p50_us']:.0f} us, "
-              f"p99 {c['p99_us']:.0f} us (target <= {realtime['targets']['p99_us_max']:.0f}), misses "
-              f"{100 * c['miss_fraction']:.2f} %, longest run {c['longest_miss_run']} (target < "
-              f"{realtime['targets']['longest_miss_run_below']}); echo baseline p99 {e['p99_us']:.0f} us")
+    quick = ["--quick"] if args.quick else []
+    for name, script, summary in _ROS_BENCHMARKS:
+        result = _run(name, [sys.executable, str(HERE / script), *quick])
+        if result is None:
+            failed.append(name)
+        else:
+            print(summary(result))
     if failed:
         print(f"failed: {', '.join(failed)}")
     return 1 if failed else 0
