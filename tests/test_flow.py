@@ -98,6 +98,42 @@ def test_flat_round_trip_and_layout():
 
 
 @pytest.mark.parametrize(("dim", "act"), CASES)
+def test_identity_init_is_the_plain_impedance_law_and_trainable(dim, act):
+    arch = _arch(dim, act)
+    w = init_flow_weights(arch, np.random.default_rng(4), init="identity")
+    w_random = init_flow_weights(arch, np.random.default_rng(4))
+    assert np.count_nonzero(w) > 0.5 * w.size  # the hidden layers stay random ...
+    assert np.count_nonzero(w != w_random) < 0.5 * w.size  # ... and are the random init's
+    x = _states(dim, 32)
+    flow = RealNVPFlow(arch, w)
+    phi, jac = flow.phi_and_jacobian(x)
+    np.testing.assert_array_equal(phi.detach().numpy(), x.numpy())
+    np.testing.assert_array_equal(jac.detach().numpy(), np.broadcast_to(np.eye(dim), (32, dim, dim)))
+    ev = FlowEvaluator(arch, w)  # the 1 kHz evaluator agrees
+    for row in x.numpy()[:4]:
+        np.testing.assert_array_equal(ev.phi(row), row)
+    # u = -S (x - x_ref) - D xdot exactly, for the policy built from a config's flow_init
+    rng = np.random.default_rng(2)
+    S, D, x_ref = _spd(rng, dim), _spd(rng, dim), rng.normal(size=dim)
+    policy = NFPolicy(arch, stiffness=S, damping=D, x_ref=x_ref, seed=4, flow_init="identity")
+    xdot = _states(dim, 32, seed=5)
+    expected = -(x.numpy() - x_ref) @ S.T - xdot.numpy() @ D.T
+    np.testing.assert_allclose(policy.mean_force(x, xdot).detach().numpy(), expected, rtol=1e-12, atol=1e-12)
+    # trainable: the output layers get a gradient, and one step makes phi differ from x
+    loss = policy.mean_force(x, xdot).pow(2).sum()
+    loss.backward()
+    grads = [p.grad for p in policy.flow.params]
+    assert all(g is not None for g in grads)
+    assert max(float(grads[k].abs().max()) for k in range(4, len(grads), 6)) > 1e-6  # W3 of the s/t nets
+    with torch.no_grad():
+        for p, g in zip(policy.flow.params, grads, strict=True):
+            p -= 1e-2 * g
+        assert float((policy.flow(x) - x).abs().max()) > 1e-6
+    with pytest.raises(ValueError, match="flow init must be one of"):
+        init_flow_weights(arch, np.random.default_rng(0), init="zeros")
+
+
+@pytest.mark.parametrize(("dim", "act"), CASES)
 def test_jacobian_matches_finite_differences(dim, act):
     flow = _flow(_arch(dim, act), seed=5)
     x = _states(dim, 8)

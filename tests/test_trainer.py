@@ -121,6 +121,18 @@ def test_resume_refuses_a_checkpoint_of_other_settings(tmp_path):
         other.load_checkpoint(tmp_path / CHECKPOINT)
 
 
+def test_a_checkpoint_from_before_a_new_setting_resumes_with_its_default(tmp_path):
+    """flow_init came after the first runs: their checkpoints lack it and meant the default (random)."""
+    Trainer(TrainConfig(**{**TINY, "iterations": 1}), tmp_path).run(evaluate=False)
+    state = torch.load(tmp_path / CHECKPOINT, weights_only=True)
+    del state["config"]["flow_init"]
+    resumed = Trainer(TrainConfig(**TINY))
+    resumed.load_state_dict(state)
+    assert resumed.iteration == 1
+    with pytest.raises(ValueError, match="flow_init: checkpoint 'random' vs now 'identity'"):
+        Trainer(TrainConfig(**{**TINY, "flow_init": "identity"})).load_state_dict(state)
+
+
 def test_value_baseline_and_mlp_policy_iterations_run(tmp_path):
     for extra in ({"baseline": "value"}, {"policy": "mlp"}):
         trainer = Trainer(TrainConfig(**{**TINY, "iterations": 1, **extra}), tmp_path / next(iter(extra.values())))

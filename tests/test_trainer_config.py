@@ -43,6 +43,7 @@ def test_task_defaults_follow_the_paper():
         ({"minibatch_size": 0}, "minibatch_size must be in"),
         ({"n_flow": 0}, "n_flow must be in"),
         ({"activation": "relu"}, "activation must be one of"),
+        ({"flow_init": "zeros"}, "flow_init must be one of"),
         ({"baseline": "critic"}, "baseline must be one of"),
         ({"adv_norm": "whiten"}, "adv_norm must be one of"),
         ({"reward_a": 0.0}, "reward_a must be > 0"),
@@ -63,7 +64,7 @@ def test_task_yaml_files_load(task):
     # the files hold the paper's defaults, except the gains (each YAML file says why)
     gains = {"gear": {"sigma_init": 1.0, "stiffness": 300.0, "stiffness_axial": 60.0, "damping": 40.0},
              "peg": {"stiffness": 300.0, "stiffness_axial": 60.0, "damping": 40.0},
-             "block": {"stiffness": 100.0, "damping": 20.0}}[task]
+             "block": {"stiffness": 100.0, "damping": 20.0, "flow_init": "identity"}}[task]
     assert cfg == TrainConfig(task=task, **gains)
 
 

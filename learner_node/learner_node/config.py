@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from nf_controller_node.flow_spec import ACTIVATIONS
+from nf_controller_node.flow_spec import ACTIVATIONS, FLOW_INITS
 
 TASKS = ("gear", "peg", "block")
 POLICIES = ("nf", "mlp")
@@ -73,6 +73,9 @@ class TrainConfig:
     """Hidden units of the flow's s/t networks (None: gear 16, peg 16, block 8)."""
     activation: str = "gelu"
     """Activation of the flow's s/t networks (gelu, tanh, softplus)."""
+    flow_init: str = "random"
+    """Flow initialisation: random (torch's default for every layer) or identity (output layers of
+    the s/t networks zero, so the untrained controller is the impedance law with S and D)."""
     stiffness: float | None = None
     """S = stiffness * I in the flow's latent space (None: gear 4, peg 1, block 1)."""
     damping: float | None = None
@@ -145,6 +148,7 @@ class TrainConfig:
         _choice("start", self.start, STARTS)
         _choice("block_plane", self.block_plane, PLANES)
         _choice("activation", self.activation, ACTIVATIONS)
+        _choice("flow_init", self.flow_init, FLOW_INITS)
         _choice("mlp_activation", self.mlp_activation, MLP_ACTIVATIONS)
         _choice("baseline", self.baseline, BASELINES)
         _choice("adv_norm", self.adv_norm, ADV_NORMS)

@@ -24,7 +24,7 @@ import torch
 from torch import nn
 from torch.autograd.function import FunctionCtx, once_differentiable
 
-from nf_controller_node.flow_spec import ACTIVATION_CODES, FlowArchitecture
+from nf_controller_node.flow_spec import ACTIVATION_CODES, FLOW_INITS, FlowArchitecture
 
 from .flow_kernels import flow_backward, flow_forward, layer_table
 
@@ -55,19 +55,32 @@ def activation_and_derivative(
     return act, der
 
 
-def init_flow_weights(arch: FlowArchitecture, rng: np.random.Generator, scale: float = 1.0) -> np.ndarray:
-    """Random flat weight vector in flow_spec order.
+_MLP_ARRAYS = 6  # W1, b1, W2, b2, W3, b3 of one s or t network (flow_spec order)
+
+
+def init_flow_weights(
+    arch: FlowArchitecture, rng: np.random.Generator, scale: float = 1.0, init: str = "random"
+) -> np.ndarray:
+    """Flat weight vector in flow_spec order.
 
     Every weight and bias is uniform in ``±scale/sqrt(fan_in)`` (torch.nn.Linear's default for
-    ``scale=1``); ``scale > 1`` gives large weights for stress tests.
+    ``scale=1``); ``scale > 1`` gives large weights for stress tests. ``init="identity"`` then
+    zeroes the output layer (W3, b3) of every s and t network, so s = t = 0 and phi is the
+    identity: the untrained controller is the plain impedance law with S and D, the same for
+    every seed. The hidden layers stay random, so gradients reach them once W3 moves.
     """
+    if init not in FLOW_INITS:
+        raise ValueError(f"flow init must be one of {FLOW_INITS}, got {init!r}")
     out = []
     shapes = arch.param_shapes()
     for i, shape in enumerate(shapes):
         # biases take the fan-in of the weight matrix just before them
         fan_in = shape[1] if len(shape) == 2 else shapes[i - 1][1]
         bound = scale / math.sqrt(fan_in)
-        out.append(rng.uniform(-bound, bound, size=int(np.prod(shape))))
+        values = rng.uniform(-bound, bound, size=int(np.prod(shape)))
+        if init == "identity" and i % _MLP_ARRAYS >= _MLP_ARRAYS - 2:
+            values[:] = 0.0
+        out.append(values)
     return np.concatenate(out).astype(np.float64)
 
 
@@ -109,8 +122,9 @@ class RealNVPFlow(nn.Module):
         weights: np.ndarray | None = None,
         seed: int = 0,
         dtype: torch.dtype = torch.float64,
+        init: str = "random",
     ) -> None:
-        """Build the flow; ``weights`` (flat, flow_spec order) default to ``init_flow_weights(seed)``."""
+        """Build the flow; ``weights`` (flat, flow_spec order) default to ``init_flow_weights(seed, init)``."""
         super().__init__()
         self.arch = arch
         self.dtype = dtype
@@ -130,7 +144,7 @@ class RealNVPFlow(nn.Module):
             inv = [order.index(i) for i in range(arch.dim)]
             self._parts.append((list(cond), list(trans), inv))
         if weights is None:
-            weights = init_flow_weights(arch, np.random.default_rng(seed))
+            weights = init_flow_weights(arch, np.random.default_rng(seed), init=init)
         self.load_flat(weights)
         self.table = layer_table(arch)  # for the compiled kernels
         self.activation_code = ACTIVATION_CODES[arch.activation]

@@ -78,13 +78,15 @@ class NFPolicy(GaussianForceMixin, nn.Module):
         log_std: np.ndarray | None = None,
         seed: int = 0,
         dtype: torch.dtype = torch.float64,
+        flow_init: str = "random",
     ) -> None:
-        """S, D default to identity, x_ref to zero; log_std defaults to ``[log(sigma_init)]`` (shared)."""
+        """S, D default to identity, x_ref to zero; log_std defaults to ``[log(sigma_init)]`` (shared);
+        without ``weights`` the flow starts from ``init_flow_weights(seed, flow_init)``."""
         super().__init__()
         d = arch.dim
         self.arch = arch
         self.dtype = dtype
-        self.flow = RealNVPFlow(arch, weights, seed=seed, dtype=dtype)
+        self.flow = RealNVPFlow(arch, weights, seed=seed, dtype=dtype, init=flow_init)
         self.register_buffer("S", _matrix(stiffness, d, dtype))
         self.register_buffer("D", _matrix(damping, d, dtype))
         ref = np.zeros(d) if x_ref is None else np.asarray(x_ref, dtype=np.float64).reshape(d)

@@ -56,7 +56,8 @@ def build_policy(cfg: TrainConfig, x_ref: np.ndarray) -> NFPolicy | MLPPolicy:
     if cfg.policy == "nf":
         arch = FlowArchitecture(dim=d, n_flow=cfg.n_flow, n_hidden=cfg.n_hidden, activation=cfg.activation)
         return NFPolicy(arch, stiffness=cfg.stiffness_matrix(), damping=cfg.damping_matrix(),
-                        x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed)
+                        x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed,
+                        flow_init=cfg.flow_init)
     return MLPPolicy(d, cfg.mlp_hidden, cfg.mlp_activation, x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed)
 
 
@@ -230,9 +231,11 @@ class Trainer:
         if state.get("format") != CHECKPOINT_FORMAT:
             raise ValueError(f"checkpoint format {state.get('format')!r}, expected {CHECKPOINT_FORMAT}")
         mine, theirs = self.cfg.to_dict(), state["config"]
-        diff = sorted(k for k in mine if k not in RESUMABLE_CHANGES and mine[k] != theirs.get(k))
+        # a setting added after the checkpoint was written counts as its default (the old behaviour)
+        theirs = {**TrainConfig(task=mine["task"]).to_dict(), **theirs}
+        diff = sorted(k for k in mine if k not in RESUMABLE_CHANGES and mine[k] != theirs[k])
         if diff:
-            detail = ", ".join(f"{k}: checkpoint {theirs.get(k)!r} vs now {mine[k]!r}" for k in diff)
+            detail = ", ".join(f"{k}: checkpoint {theirs[k]!r} vs now {mine[k]!r}" for k in diff)
             raise ValueError(f"checkpoint was written with different settings ({detail})")
         self.policy.load_state_dict(state["policy"])
         self.optimizer.load_state_dict(state["optimizer"])

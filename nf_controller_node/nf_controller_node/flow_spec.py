@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 ACTIVATIONS = ("gelu", "tanh", "softplus")
 ACTIVATION_CODES = {name: i for i, name in enumerate(ACTIVATIONS)}
+FLOW_INITS = ("random", "identity")  # initial weights: all random, or s/t output layers zero (phi = x)
 
 
 @dataclass(frozen=True)
