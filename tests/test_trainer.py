@@ -133,6 +133,16 @@ def test_a_checkpoint_from_before_a_new_setting_resumes_with_its_default(tmp_pat
         Trainer(TrainConfig(**{**TINY, "flow_init": "identity"})).load_state_dict(state)
 
 
+def test_an_mlp_checkpoint_ignores_flow_settings(tmp_path):
+    """The MLP policy never reads the flow's settings, so a task file's new flow_init must not stop its resume."""
+    Trainer(TrainConfig(**{**TINY, "policy": "mlp", "iterations": 1}), tmp_path).run(evaluate=False)
+    resumed = Trainer(TrainConfig(**{**TINY, "policy": "mlp", "flow_init": "identity", "stiffness": 50.0}))
+    resumed.load_checkpoint(tmp_path / CHECKPOINT)
+    assert resumed.iteration == 1
+    with pytest.raises(ValueError, match="mlp_hidden"):
+        Trainer(TrainConfig(**{**TINY, "policy": "mlp", "mlp_hidden": 8})).load_checkpoint(tmp_path / CHECKPOINT)
+
+
 def test_value_baseline_and_mlp_policy_iterations_run(tmp_path):
     for extra in ({"baseline": "value"}, {"policy": "mlp"}):
         trainer = Trainer(TrainConfig(**{**TINY, "iterations": 1, **extra}), tmp_path / next(iter(extra.values())))

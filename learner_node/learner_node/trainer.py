@@ -47,6 +47,9 @@ CHECKPOINT_FORMAT = 1
 EVAL_SEED_BASE = 1_000_000_000  # held-out evaluation starts: seeds >= this; training seeds are below
 # settings that may differ between a checkpoint and the run that resumes it
 RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes"})
+# settings only the NF policy reads: an MLP run's checkpoint resumes whatever they are
+NF_ONLY = frozenset({"n_flow", "n_hidden", "activation", "flow_init", "stiffness", "damping", "stiffness_axial",
+                     "damping_axial"})
 TIMING_KEYS = ("rollout_seconds", "update_seconds", "wall_seconds")
 
 
@@ -227,13 +230,15 @@ class Trainer:
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore from ``state_dict`` (the config must match except ``RESUMABLE_CHANGES``)."""
+        """Restore from ``state_dict`` (the config must match except ``RESUMABLE_CHANGES``, and for the
+        MLP policy the NF-only settings)."""
         if state.get("format") != CHECKPOINT_FORMAT:
             raise ValueError(f"checkpoint format {state.get('format')!r}, expected {CHECKPOINT_FORMAT}")
         mine, theirs = self.cfg.to_dict(), state["config"]
         # a setting added after the checkpoint was written counts as its default (the old behaviour)
         theirs = {**TrainConfig(task=mine["task"]).to_dict(), **theirs}
-        diff = sorted(k for k in mine if k not in RESUMABLE_CHANGES and mine[k] != theirs[k])
+        ignored = RESUMABLE_CHANGES | (NF_ONLY if mine["policy"] == "mlp" else frozenset())
+        diff = sorted(k for k in mine if k not in ignored and mine[k] != theirs[k])
         if diff:
             detail = ", ".join(f"{k}: checkpoint {theirs[k]!r} vs now {mine[k]!r}" for k in diff)
             raise ValueError(f"checkpoint was written with different settings ({detail})")
