@@ -397,7 +397,9 @@ def write_readme(runs: list[RunResult], out_dir: Path, commands: list[str], figu
         f"{', evaluated' if r.evaluation else ''}{', free-space check' if r.freespace else ''}"
         for r in sorted(runs, key=lambda r: (r.task, r.policy, r.sigma, r.seed))
     )
-    settings = sorted({(r.task, json.dumps({k: r.config[k] for k in _SHOWN if k in r.config})) for r in runs})
+    # a setting newer than a run's config.json is shown with its default (what that run used)
+    settings = sorted({(r.task, json.dumps({k: {**TrainConfig(task=r.task).to_dict(), **r.config}[k] for k in _SHOWN}))
+                       for r in runs})
     settings_md = "\n".join(f"- {task}: `{s}`" for task, s in settings)
     figs = "\n".join(f"![{p.stem}]({p.name})" for p in figures)
     text = f"""# Learning results
@@ -447,8 +449,8 @@ exist; everything in the table is computed from them.
     return out_dir / "README.md"
 
 
-_SHOWN = ("n_flow", "n_hidden", "stiffness", "stiffness_axial", "damping", "damping_axial", "episode_seconds",
-          "decision_period", "rollouts_per_iter", "learning_rate", "start", "mlp_hidden")
+_SHOWN = ("n_flow", "n_hidden", "flow_init", "stiffness", "stiffness_axial", "damping", "damping_axial",
+          "episode_seconds", "decision_period", "rollouts_per_iter", "learning_rate", "start", "mlp_hidden")
 
 
 # ---------------------------------------------------------------------- CLI
