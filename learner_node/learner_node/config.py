@@ -222,6 +222,12 @@ class TrainConfig:
         """Plain dict of all fields (resolved values)."""
         return dataclasses.asdict(self)
 
+    @staticmethod
+    def with_defaults(stored: dict[str, Any]) -> dict[str, Any]:
+        """A stored config (checkpoint, config.json) with every setting added since it was written
+        filled in by its task's default, which is what that run used."""
+        return {**TrainConfig(task=stored["task"]).to_dict(), **stored}
+
     def table(self) -> str:
         """The settings as an aligned two-column text table, for the log at the start of a run."""
         rows = [(f.name, repr(getattr(self, f.name))) for f in fields(self)]

@@ -397,9 +397,7 @@ def write_readme(runs: list[RunResult], out_dir: Path, commands: list[str], figu
         f"{', evaluated' if r.evaluation else ''}{', free-space check' if r.freespace else ''}"
         for r in sorted(runs, key=lambda r: (r.task, r.policy, r.sigma, r.seed))
     )
-    # a setting newer than a run's config.json is shown with its default (what that run used)
-    settings = sorted({(r.task, json.dumps({k: {**TrainConfig(task=r.task).to_dict(), **r.config}[k] for k in _SHOWN}))
-                       for r in runs})
+    settings = sorted({(r.task, json.dumps({k: TrainConfig.with_defaults(r.config)[k] for k in _SHOWN})) for r in runs})
     settings_md = "\n".join(f"- {task}: `{s}`" for task, s in settings)
     figs = "\n".join(f"![{p.stem}]({p.name})" for p in figures)
     text = f"""# Learning results

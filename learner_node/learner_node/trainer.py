@@ -235,8 +235,7 @@ class Trainer:
         if state.get("format") != CHECKPOINT_FORMAT:
             raise ValueError(f"checkpoint format {state.get('format')!r}, expected {CHECKPOINT_FORMAT}")
         mine, theirs = self.cfg.to_dict(), state["config"]
-        # a setting added after the checkpoint was written counts as its default (the old behaviour)
-        theirs = {**TrainConfig(task=mine["task"]).to_dict(), **theirs}
+        theirs = TrainConfig.with_defaults(theirs)  # a setting newer than the checkpoint: its default
         ignored = RESUMABLE_CHANGES | (NF_ONLY if mine["policy"] == "mlp" else frozenset())
         diff = sorted(k for k in mine if k not in ignored and mine[k] != theirs[k])
         if diff:
