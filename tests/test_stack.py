@@ -4,17 +4,61 @@ processes over real DDS, one short PPO iteration, and the run folder a user gets
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
+import time
 
 import pytest
 from nf_bags import bagfile, reader
 
+from learner_node.stack import ManagedProcess, wait_for_recorder
+
 from ros_testing import REPO, allocate_domain_id, ros_env
 
-pytestmark = pytest.mark.ros
+
+def _printer(lines: str, then_sleep: float = 30.0) -> list[str]:
+    """argv of a child that prints ``lines`` (with a pause before the last) and then lingers."""
+    *head, last = lines.splitlines()
+    code = (f"import time; print({chr(10).join(head)!r}, flush=True); time.sleep(0.5); print({last!r}, flush=True); "
+            f"time.sleep({then_sleep})")
+    return [sys.executable, "-c", code]
 
 
+def test_the_learner_waits_for_the_recorder_to_subscribe_to_the_arm_and_rollout_topics(tmp_path):
+    # not a ROS test: children that print what the recorder prints, the last topic after a pause
+    lines = "\n".join(["recording all topics into x", "recording /joint_states (sensor_msgs/msg/JointState, reliable)",
+                       "recording /effort_controller/commands (std_msgs/msg/Float64MultiArray, reliable)",
+                       "recording /rollouts (nf_msgs/msg/RolloutChunk, reliable)"])
+    recorder = ManagedProcess("recorder", _printer(lines), dict(os.environ), tmp_path, echo=False)
+    try:
+        t0 = time.monotonic()
+        assert wait_for_recorder(recorder, [], timeout=20.0)
+        assert 0.4 < time.monotonic() - t0 < 15.0  # it waited for the last line, not for the timeout
+    finally:
+        recorder.stop(timeout=2.0)
+    # /rollouts never comes: a bounded wait and a warning, not a hang
+    partial = "\n".join(lines.splitlines()[:3])
+    recorder = ManagedProcess("recorder", _printer(partial), dict(os.environ), tmp_path, echo=False)
+    try:
+        t0 = time.monotonic()
+        assert not wait_for_recorder(recorder, [], timeout=1.5)
+        assert time.monotonic() - t0 < 10.0
+    finally:
+        recorder.stop(timeout=2.0)
+    # a node of the stack exits while waiting: stop waiting at once
+    recorder = ManagedProcess("recorder", _printer(partial), dict(os.environ), tmp_path, echo=False)
+    gone = ManagedProcess("controller", [sys.executable, "-c", "pass"], dict(os.environ), tmp_path, echo=False)
+    try:
+        t0 = time.monotonic()
+        assert not wait_for_recorder(recorder, [gone], timeout=30.0)
+        assert time.monotonic() - t0 < 15.0
+    finally:
+        recorder.stop(timeout=2.0)
+        gone.stop(timeout=2.0)
+
+
+@pytest.mark.ros
 def test_stack_runs_an_iteration_and_leaves_a_complete_run_folder(tmp_path):
     run = tmp_path / "run"
     domain = allocate_domain_id()
@@ -42,5 +86,8 @@ def test_stack_runs_an_iteration_and_leaves_a_complete_run_folder(tmp_path):
     assert health.closed and not health.lost
     for topic in ("/joint_states", "/effort_controller/commands", "/rollouts", "/policy_parameters"):
         assert health.counts[topic] > 0, (topic, dict(health.counts))
+    # every episode, the first included (the learner starts only once the recorder subscribes), complete
     episodes = reader.rollout_chunks(run / "bag")
-    assert len(episodes) >= 3  # 2 training episodes + 1 evaluation episode
+    assert len(episodes) == 3, {k: [(c.seq, c.final) for c in v] for k, v in episodes.items()}  # 2 training + 1 eval
+    assert sorted(episodes) == list(range(min(episodes), min(episodes) + 3))
+    assert all(v[-1].final and len(v) == v[-1].n_chunks for v in episodes.values())

@@ -3,8 +3,9 @@ environment has no ``ros2 launch``; ``launch/gear_learning.launch.py`` mirrors t
 ROS 2 installs).
 
 Starts sim_bridge (lockstep), nf_controller, the bag recorder (when ``nf_bags`` is available)
-and learner_node with one parameters file, prefixes and forwards their output, stops them
-cleanly (SIGINT, then SIGTERM, then SIGKILL, each by PID) and leaves a run folder::
+and, once the recorder subscribes to the arm and rollout topics, learner_node, all with one
+parameters file; prefixes and forwards their output, stops them cleanly (SIGINT, then SIGTERM,
+then SIGKILL, each by PID) and leaves a run folder::
 
     runs/<time>/learner/   metrics.csv/json, checkpoint.pt, evaluation.json (learner_node)
     runs/<time>/bag/       rosbag2 MCAP bag of the run (when the recorder is available)
@@ -31,6 +32,11 @@ from typing import IO
 import yaml
 
 DEFAULT_ITERATIONS = 10  # about 7-8 minutes on the 2-core development machines
+# The learner starts only once the recorder subscribes to these (its "recording <topic> (" line):
+# the controller's first episode follows the learner's first policy at once, and a recorder still
+# discovering topics would miss it (a 0.5 s episode's single rollout chunk was lost that way in CI).
+RECORDED_BEFORE_LEARNING = ("/joint_states", "/effort_controller/commands", "/rollouts")
+RECORDER_WAIT_SECONDS = 120.0  # the controller's first start compiles its kernels (~15 s here)
 
 
 class ManagedProcess:
@@ -45,6 +51,8 @@ class ManagedProcess:
         self.proc = subprocess.Popen(self.argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                      text=True, bufsize=1, start_new_session=True)
         self._echo = echo
+        self._seen = threading.Condition()
+        self._output: list[str] = []
         self._thread = threading.Thread(target=self._forward, name=f"log-{name}", daemon=True)
         self._thread.start()
 
@@ -53,9 +61,29 @@ class ManagedProcess:
         for line in self.proc.stdout:
             self._log.write(line)
             self._log.flush()
+            with self._seen:
+                self._output.append(line)
+                self._seen.notify_all()
             if self._echo:
                 sys.stdout.write(f"[{self.name}] {line}" if not line.startswith("[learner]") else line)
                 sys.stdout.flush()
+
+    def wait_for_output(self, needles: Sequence[str], timeout: float,
+                        alive: Sequence[ManagedProcess] = ()) -> list[str]:
+        """Wait until every needle has appeared in a line of output; the needles still missing
+        (empty on success) when ``timeout`` s pass or this process or one of ``alive`` exits."""
+        missing = list(needles)
+        deadline = time.monotonic() + timeout
+        checked = 0
+        with self._seen:
+            while True:
+                for line in self._output[checked:]:
+                    missing = [n for n in missing if n not in line]
+                checked = len(self._output)
+                left = deadline - time.monotonic()
+                if not missing or left <= 0 or not all(p.running() for p in (self, *alive)):
+                    return missing
+                self._seen.wait(timeout=min(left, 0.2))
 
     @property
     def pid(self) -> int:
@@ -108,6 +136,19 @@ def node_commands(config: Path, run_dir: Path, iterations: int, extra: Sequence[
     if importlib.util.find_spec("nf_bags") is not None:
         cmds["recorder"] = [py, "-m", "nf_bags.record", "-o", str(run_dir / "bag")]
     return cmds
+
+
+def wait_for_recorder(recorder: ManagedProcess, others: Sequence[ManagedProcess],
+                      timeout: float = RECORDER_WAIT_SECONDS) -> bool:
+    """Block until the recorder records ``RECORDED_BEFORE_LEARNING``; False (with a warning that the
+    bag may miss the first episodes) when it does not within ``timeout`` s or a process exited."""
+    missing = recorder.wait_for_output([f"recording {t} (" for t in RECORDED_BEFORE_LEARNING], timeout, others)
+    if missing:
+        topics = ", ".join(m.split()[1] for m in missing)
+        print(f"[stack] warning: the recorder is not recording {topics} after {timeout:.0f} s or a node exited; "
+              "starting the learner anyway: the bag may miss the first episodes", flush=True)
+        return False
+    return True
 
 
 def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | None) -> Path:
@@ -227,15 +268,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     code: int | None = None
     interrupted = False
     try:
-        for name in ("recorder", "sim", "controller", "learner"):
+        for name in ("recorder", "sim", "controller"):
             if name in cmds:
                 procs[name] = ManagedProcess(name, cmds[name], env, run_dir / "logs")
-        while procs["learner"].running():
-            dead = [n for n, p in procs.items() if n != "learner" and not p.running()]
-            if dead:
-                print(f"[stack] {', '.join(dead)} exited early (see {run_dir / 'logs'}); stopping", flush=True)
-                break
+        if "recorder" in procs:
+            wait_for_recorder(procs["recorder"], [procs["sim"], procs["controller"]])
+        dead = [n for n, p in procs.items() if not p.running()]
+        if not dead:
+            procs["learner"] = ManagedProcess("learner", cmds["learner"], env, run_dir / "logs")
+        while not dead and procs["learner"].running():
             time.sleep(0.2)
+            dead = [n for n, p in procs.items() if n != "learner" and not p.running()]
+        if dead:
+            print(f"[stack] {', '.join(dead)} exited early (see {run_dir / 'logs'}); stopping", flush=True)
     except KeyboardInterrupt:
         interrupted = True
         print("[stack] interrupted: stopping the nodes", flush=True)
