@@ -28,6 +28,7 @@ setup(
             "learner = learner_node.node:main",
             "run_stack = learner_node.stack:main",
             "nf_report = learner_node.report:main",
+            "nf_compare = learner_node.compare:main",
         ],
     },
 )

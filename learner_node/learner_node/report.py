@@ -448,7 +448,8 @@ exist; everything in the table is computed from them.
 
 
 _SHOWN = ("n_flow", "n_hidden", "flow_init", "stiffness", "stiffness_axial", "damping", "damping_axial",
-          "episode_seconds", "decision_period", "rollouts_per_iter", "learning_rate", "start", "mlp_hidden")
+          "episode_seconds", "decision_period", "rollouts_per_iter", "learning_rate", "target_kl", "start",
+          "mlp_hidden")
 
 
 # ---------------------------------------------------------------------- CLI

@@ -1,0 +1,108 @@
+"""``nf_compare``: groups of finished training runs side by side, for probes that change one setting.
+
+Each group is ``LABEL=DIR``; its runs are the folders below DIR that hold a ``metrics.json`` (as
+``train`` and ``nf_report`` leave them). Writes one figure of learning curves (mean and range over
+a group's runs, ``plots.plot_learning_curve_groups``) and prints a markdown table: training success
+over the first and the last 5 iterations, the deterministic held-out evaluation and the largest
+approx_kl of any update, per run::
+
+    nf_compare --out docs/results/probes/gear_weak_prior.png "10 ms=runs/a" "50 ms=runs/b"
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+WINDOW = 5  # iterations averaged at the start and at the end of a run
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """What the comparison table shows of one run folder."""
+
+    name: str
+    iterations: int
+    success_first: float  # mean training success over the first WINDOW iterations
+    success_last: float  # ... and over the last WINDOW
+    eval_success: float | None  # deterministic held-out evaluation (None: not evaluated)
+    max_kl: float  # largest approx_kl of any update
+
+
+def run_folders(root: Path) -> list[Path]:
+    """Every folder at or below ``root`` holding a ``metrics.json``, sorted by path."""
+    return sorted(p.parent for p in root.rglob("metrics.json"))
+
+
+def summarize(run: Path) -> tuple[RunSummary, list[dict]]:
+    """The table row and the metrics rows of one run folder (``ValueError`` when it has no iteration)."""
+    rows = json.loads((run / "metrics.json").read_text())
+    if not rows:
+        raise ValueError(f"{run}: metrics.json holds no iteration")
+    success = [float(r["success_rate"]) for r in rows]
+    evaluation = run / "evaluation.json"
+    eval_success = float(json.loads(evaluation.read_text())["success_rate"]) if evaluation.exists() else None
+    summary = RunSummary(run.name, len(rows), sum(success[:WINDOW]) / len(success[:WINDOW]),
+                         sum(success[-WINDOW:]) / len(success[-WINDOW:]), eval_success,
+                         max(float(r.get("approx_kl", 0.0)) for r in rows))
+    return summary, rows
+
+
+def markdown_table(groups: Mapping[str, Sequence[RunSummary]]) -> str:
+    """One line per group, the per-run values in run order."""
+    def each(values: Sequence[float | None], fmt: str = "{:.2f}") -> str:
+        return ", ".join("-" if v is None else fmt.format(v) for v in values)
+
+    lines = [f"| group | runs | iterations | success, it. 1-{WINDOW} | success, last {WINDOW} it. | "
+             "held-out eval success | largest approx_kl |", "|---|---|---|---|---|---|---|"]
+    for label, runs in groups.items():
+        lines.append(f"| {label} | {len(runs)} | {each([r.iterations for r in runs], '{:d}')} | "
+                     f"{each([r.success_first for r in runs])} | {each([r.success_last for r in runs])} | "
+                     f"{each([r.eval_success for r in runs])} | {each([r.max_kl for r in runs], '{:.3f}')} |")
+    return "\n".join(lines)
+
+
+def _group(text: str) -> tuple[str, Path]:
+    label, sep, folder = text.partition("=")
+    if not sep or not label or not folder:
+        raise argparse.ArgumentTypeError(f"expected LABEL=DIR, got {text!r}")
+    return label, Path(folder)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script ``nf_compare``."""
+    ap = argparse.ArgumentParser(prog="nf_compare", description=__doc__.splitlines()[0])
+    ap.add_argument("groups", nargs="+", type=_group, metavar="LABEL=DIR", help="a group of run folders")
+    ap.add_argument("--out", type=Path, required=True, help="PNG of the learning curves")
+    ap.add_argument("--title", default="", help="figure title")
+    ap.add_argument("--markdown", type=Path, default=None, help="also write the table to this file")
+    args = ap.parse_args(argv)
+    summaries: dict[str, list[RunSummary]] = {}
+    histories: dict[str, list[list[dict]]] = {}
+    for label, root in args.groups:
+        runs = run_folders(root)
+        if not runs:
+            ap.error(f"group {label!r}: no run folder (with metrics.json) below {root}")
+        try:
+            pairs = [summarize(r) for r in runs]
+        except (ValueError, KeyError, json.JSONDecodeError) as exc:
+            ap.error(f"group {label!r}: {exc}")
+        summaries[label] = [s for s, _ in pairs]
+        histories[label] = [rows for _, rows in pairs]
+    from .plots import plot_learning_curve_groups
+
+    plot_learning_curve_groups(histories, args.out, args.title)
+    table = markdown_table(summaries)
+    print(table)
+    print(f"figure: {args.out}")
+    if args.markdown is not None:
+        args.markdown.parent.mkdir(parents=True, exist_ok=True)
+        args.markdown.write_text(table + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,58 @@
+"""``nf_compare`` on real (tiny) training runs: groups found below their folders, the table's numbers
+taken from each run's own files, a figure written, and bad groups refused with a reason."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from learner_node.compare import main as compare_main
+from learner_node.compare import run_folders, summarize
+from learner_node.config import TrainConfig
+from learner_node.trainer import Trainer
+
+TINY = {"task": "block", "iterations": 2, "rollouts_per_iter": 3, "episode_seconds": 0.2, "minibatch_size": 16,
+        "update_epochs": 2, "eval_episodes": 2}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """Two groups: two evaluated seeds (one folder deeper, as nf_report nests them) and one unevaluated run."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("runs")
+    for seed in (0, 1):
+        Trainer(TrainConfig(**{**TINY, "seed": seed}), root / "a" / "block" / f"nf-seed{seed}").run()
+    Trainer(TrainConfig(**{**TINY, "iterations": 1}), root / "b" / "nf-seed0").run(evaluate=False)
+    torch.set_num_threads(before)
+    return root
+
+
+def test_table_and_figure_come_from_the_runs_files(runs, tmp_path, capsys):
+    assert [p.name for p in run_folders(runs / "a")] == ["nf-seed0", "nf-seed1"]
+    summary, rows = summarize(runs / "a" / "block" / "nf-seed1")
+    success = [r["success_rate"] for r in rows]
+    assert summary.iterations == 2 and summary.success_first == pytest.approx(sum(success) / 2)
+    assert summary.max_kl == max(r["approx_kl"] for r in rows)
+    evaluation = json.loads((runs / "a" / "block" / "nf-seed1" / "evaluation.json").read_text())
+    assert summary.eval_success == evaluation["success_rate"]
+
+    out, table = tmp_path / "cmp.png", tmp_path / "cmp.md"
+    assert compare_main([f"two seeds={runs / 'a'}", f"unevaluated={runs / 'b'}", "--out", str(out),
+                         "--markdown", str(table)]) == 0
+    assert out.stat().st_size > 10_000
+    lines = table.read_text().splitlines()
+    assert lines[2].startswith("| two seeds | 2 | 2, 2 |")
+    assert lines[3].startswith("| unevaluated | 1 | 1 |") and "| - |" in lines[3]  # no evaluation: a dash
+    assert "two seeds" in capsys.readouterr().out
+
+
+def test_bad_groups_are_refused_with_a_reason(runs, tmp_path, capsys):
+    for argv, reason in ((["no-equals-sign"], "expected LABEL=DIR"),
+                         ([f"empty={tmp_path}"], "no run folder (with metrics.json) below")):
+        with pytest.raises(SystemExit) as exc:
+            compare_main([*argv, "--out", str(tmp_path / "x.png")])
+        assert exc.value.code == 2
+        assert reason in capsys.readouterr().err
