@@ -64,8 +64,8 @@ def test_env_file_sets_loopback_discovery():
 def test_env_file_puts_console_scripts_and_bags_on_the_path():
     """The README's commands (train, nf_report, render_scene, python -m nf_bags.*) work in a shell
     that sourced env.sh and nothing else."""
-    script = f"source {REPO / 'env.sh'} && command -v train nf_report nf_compare run_stack render_scene controller_bench " \
-             "&& python -c 'import nf_bags.record'"
+    script = f"source {REPO / 'env.sh'} && command -v train nf_report nf_compare run_stack render_scene " \
+             "controller_bench && python -c 'import nf_bags.record'"
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     env["PATH"] = "/usr/bin:/bin"
     done = subprocess.run(["bash", "-c", script], env=env, capture_output=True, text=True, timeout=120)
