@@ -49,9 +49,18 @@ def test_table_and_figure_come_from_the_runs_files(runs, tmp_path, capsys):
     assert "two seeds" in capsys.readouterr().out
 
 
+def test_equal_budgets_cut_every_run_and_drop_a_later_evaluation(runs):
+    full, rows = summarize(runs / "a" / "block" / "nf-seed0")
+    cut, cut_rows = summarize(runs / "a" / "block" / "nf-seed0", iterations=1)
+    assert full.eval_success is not None and cut.eval_success is None  # evaluated after iteration 2, not 1
+    assert cut.iterations == 1 and cut_rows == rows[:1]
+    assert cut.success_first == cut.success_last == rows[0]["success_rate"]
+
+
 def test_bad_groups_are_refused_with_a_reason(runs, tmp_path, capsys):
     for argv, reason in ((["no-equals-sign"], "expected LABEL=DIR"),
-                         ([f"empty={tmp_path}"], "no run folder (with metrics.json) below")):
+                         ([f"empty={tmp_path}"], "no run folder (with metrics.json) below"),
+                         ([f"a={runs / 'a'}", "--iterations", "0"], "--iterations must be >= 1")):
         with pytest.raises(SystemExit) as exc:
             compare_main([*argv, "--out", str(tmp_path / "x.png")])
         assert exc.value.code == 2

@@ -4,7 +4,7 @@ Each group is ``LABEL=DIR``; its runs are the folders below DIR that hold a ``me
 ``train`` and ``nf_report`` leave them). Writes one figure of learning curves (mean and range over
 a group's runs, ``plots.plot_learning_curve_groups``) and prints a markdown table: training success
 over the first and the last 5 iterations, the deterministic held-out evaluation and the largest
-approx_kl of any update, per run::
+approx_kl of any update, per run (``--iterations N``: over the first N iterations only)::
 
     nf_compare --out docs/results/probes/gear_weak_prior.png "10 ms=runs/a" "50 ms=runs/b"
 """
@@ -37,14 +37,20 @@ def run_folders(root: Path) -> list[Path]:
     return sorted(p.parent for p in root.rglob("metrics.json"))
 
 
-def summarize(run: Path) -> tuple[RunSummary, list[dict]]:
-    """The table row and the metrics rows of one run folder (``ValueError`` when it has no iteration)."""
-    rows = json.loads((run / "metrics.json").read_text())
+def summarize(run: Path, iterations: int | None = None) -> tuple[RunSummary, list[dict]]:
+    """The table row and the metrics rows of one run folder, up to ``iterations`` (all when None);
+    the held-out evaluation only when it was made after the last iteration used. ``ValueError``
+    when the run has no iteration."""
+    rows = json.loads((run / "metrics.json").read_text())[:iterations]
     if not rows:
         raise ValueError(f"{run}: metrics.json holds no iteration")
     success = [float(r["success_rate"]) for r in rows]
     evaluation = run / "evaluation.json"
-    eval_success = float(json.loads(evaluation.read_text())["success_rate"]) if evaluation.exists() else None
+    eval_success = None
+    if evaluation.exists():
+        result = json.loads(evaluation.read_text())
+        if int(result.get("iteration", -1)) == int(rows[-1]["iteration"]):
+            eval_success = float(result["success_rate"])
     summary = RunSummary(run.name, len(rows), sum(success[:WINDOW]) / len(success[:WINDOW]),
                          sum(success[-WINDOW:]) / len(success[-WINDOW:]), eval_success,
                          max(float(r.get("approx_kl", 0.0)) for r in rows))
@@ -79,7 +85,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True, help="PNG of the learning curves")
     ap.add_argument("--title", default="", help="figure title")
     ap.add_argument("--markdown", type=Path, default=None, help="also write the table to this file")
+    ap.add_argument("--iterations", type=int, default=None,
+                    help="use only the first N iterations of every run (equal budgets; an evaluation made "
+                         "later is shown as -)")
     args = ap.parse_args(argv)
+    if args.iterations is not None and args.iterations < 1:
+        ap.error(f"--iterations must be >= 1, got {args.iterations}")
     summaries: dict[str, list[RunSummary]] = {}
     histories: dict[str, list[list[dict]]] = {}
     for label, root in args.groups:
@@ -87,7 +98,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not runs:
             ap.error(f"group {label!r}: no run folder (with metrics.json) below {root}")
         try:
-            pairs = [summarize(r) for r in runs]
+            pairs = [summarize(r, args.iterations) for r in runs]
         except (ValueError, KeyError, json.JSONDecodeError) as exc:
             ap.error(f"group {label!r}: {exc}")
         summaries[label] = [s for s, _ in pairs]
