@@ -12,7 +12,7 @@ import time
 import pytest
 from nf_bags import bagfile, reader
 
-from learner_node.stack import ManagedProcess, wait_for_recorder
+from learner_node.stack import RECORDER_READY, ManagedProcess, wait_for_recorder
 
 from ros_testing import REPO, allocate_domain_id, ros_env
 
@@ -30,7 +30,8 @@ def test_the_learner_waits_for_the_recorder_to_subscribe_to_the_arm_and_rollout_
     lines = "\n".join(["recording all topics into x", "recording /joint_states (sensor_msgs/msg/JointState, reliable)",
                        "recording /effort_controller/commands (std_msgs/msg/Float64MultiArray, reliable)",
                        "recording /rollouts (nf_msgs/msg/RolloutChunk, reliable)"])
-    recorder = ManagedProcess("recorder", _printer(lines), dict(os.environ), tmp_path, echo=False)
+    recorder = ManagedProcess("recorder", _printer(lines), dict(os.environ), tmp_path, echo=False,
+                              watch=RECORDER_READY)
     try:
         t0 = time.monotonic()
         assert wait_for_recorder(recorder, [], timeout=20.0)
@@ -39,7 +40,8 @@ def test_the_learner_waits_for_the_recorder_to_subscribe_to_the_arm_and_rollout_
         recorder.stop(timeout=2.0)
     # /rollouts never comes: a bounded wait and a warning, not a hang
     partial = "\n".join(lines.splitlines()[:3])
-    recorder = ManagedProcess("recorder", _printer(partial), dict(os.environ), tmp_path, echo=False)
+    recorder = ManagedProcess("recorder", _printer(partial), dict(os.environ), tmp_path, echo=False,
+                              watch=RECORDER_READY)
     try:
         t0 = time.monotonic()
         assert not wait_for_recorder(recorder, [], timeout=1.5)
@@ -47,7 +49,8 @@ def test_the_learner_waits_for_the_recorder_to_subscribe_to_the_arm_and_rollout_
     finally:
         recorder.stop(timeout=2.0)
     # a node of the stack exits while waiting: stop waiting at once
-    recorder = ManagedProcess("recorder", _printer(partial), dict(os.environ), tmp_path, echo=False)
+    recorder = ManagedProcess("recorder", _printer(partial), dict(os.environ), tmp_path, echo=False,
+                              watch=RECORDER_READY)
     gone = ManagedProcess("controller", [sys.executable, "-c", "pass"], dict(os.environ), tmp_path, echo=False)
     try:
         t0 = time.monotonic()

@@ -17,7 +17,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-WINDOW = 5  # iterations averaged at the start and at the end of a run
+from .report import EVALUATION_FILE, WINDOW  # the same 5-iteration windows as Table I
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,7 @@ def summarize(run: Path, iterations: int | None = None) -> tuple[RunSummary, lis
     if not rows:
         raise ValueError(f"{run}: metrics.json holds no iteration")
     success = [float(r["success_rate"]) for r in rows]
-    evaluation = run / "evaluation.json"
+    evaluation = run / EVALUATION_FILE
     eval_success = None
     if evaluation.exists():
         result = json.loads(evaluation.read_text())

@@ -36,13 +36,15 @@ DEFAULT_ITERATIONS = 10  # about 7-8 minutes on the 2-core development machines
 # the controller's first episode follows the learner's first policy at once, and a recorder still
 # discovering topics would miss it (a 0.5 s episode's single rollout chunk was lost that way in CI).
 RECORDED_BEFORE_LEARNING = ("/joint_states", "/effort_controller/commands", "/rollouts")
+RECORDER_READY = tuple(f"recording {t} (" for t in RECORDED_BEFORE_LEARNING)  # lines to watch for
 RECORDER_WAIT_SECONDS = 120.0  # the controller's first start compiles its kernels (~15 s here)
 
 
 class ManagedProcess:
     """One child process whose output is prefixed and forwarded (and kept in a log file)."""
 
-    def __init__(self, name: str, argv: Sequence[str], env: dict[str, str], log_dir: Path, echo: bool = True) -> None:
+    def __init__(self, name: str, argv: Sequence[str], env: dict[str, str], log_dir: Path, echo: bool = True,
+                 watch: Sequence[str] = ()) -> None:
         self.name = name
         self.argv = list(argv)
         log_dir.mkdir(parents=True, exist_ok=True)
@@ -52,7 +54,7 @@ class ManagedProcess:
                                      text=True, bufsize=1, start_new_session=True)
         self._echo = echo
         self._seen = threading.Condition()
-        self._output: list[str] = []
+        self._unseen = list(watch)  # watched texts no output line has contained yet (wait_for_watched)
         self._thread = threading.Thread(target=self._forward, name=f"log-{name}", daemon=True)
         self._thread.start()
 
@@ -61,28 +63,23 @@ class ManagedProcess:
         for line in self.proc.stdout:
             self._log.write(line)
             self._log.flush()
-            with self._seen:
-                self._output.append(line)
-                self._seen.notify_all()
+            if self._unseen:
+                with self._seen:
+                    self._unseen = [w for w in self._unseen if w not in line]
+                    self._seen.notify_all()
             if self._echo:
                 sys.stdout.write(f"[{self.name}] {line}" if not line.startswith("[learner]") else line)
                 sys.stdout.flush()
 
-    def wait_for_output(self, needles: Sequence[str], timeout: float,
-                        alive: Sequence[ManagedProcess] = ()) -> list[str]:
-        """Wait until every needle has appeared in a line of output; the needles still missing
-        (empty on success) when ``timeout`` s pass or this process or one of ``alive`` exits."""
-        missing = list(needles)
+    def wait_for_watched(self, timeout: float, alive: Sequence[ManagedProcess] = ()) -> list[str]:
+        """Wait until every ``watch`` text given at start has appeared in a line of output; the texts
+        still missing (empty on success) when ``timeout`` s pass or this process or one of ``alive`` exits."""
         deadline = time.monotonic() + timeout
-        checked = 0
         with self._seen:
             while True:
-                for line in self._output[checked:]:
-                    missing = [n for n in missing if n not in line]
-                checked = len(self._output)
                 left = deadline - time.monotonic()
-                if not missing or left <= 0 or not all(p.running() for p in (self, *alive)):
-                    return missing
+                if not self._unseen or left <= 0 or not all(p.running() for p in (self, *alive)):
+                    return list(self._unseen)
                 self._seen.wait(timeout=min(left, 0.2))
 
     @property
@@ -140,9 +137,10 @@ def node_commands(config: Path, run_dir: Path, iterations: int, extra: Sequence[
 
 def wait_for_recorder(recorder: ManagedProcess, others: Sequence[ManagedProcess],
                       timeout: float = RECORDER_WAIT_SECONDS) -> bool:
-    """Block until the recorder records ``RECORDED_BEFORE_LEARNING``; False (with a warning that the
-    bag may miss the first episodes) when it does not within ``timeout`` s or a process exited."""
-    missing = recorder.wait_for_output([f"recording {t} (" for t in RECORDED_BEFORE_LEARNING], timeout, others)
+    """Block until the recorder (started with ``watch=RECORDER_READY``) records ``RECORDED_BEFORE_LEARNING``;
+    False (with a warning that the bag may miss the first episodes) when it does not within ``timeout`` s
+    or a process exited."""
+    missing = recorder.wait_for_watched(timeout, others)
     if missing:
         topics = ", ".join(m.split()[1] for m in missing)
         print(f"[stack] warning: the recorder is not recording {topics} after {timeout:.0f} s or a node exited; "
@@ -270,7 +268,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         for name in ("recorder", "sim", "controller"):
             if name in cmds:
-                procs[name] = ManagedProcess(name, cmds[name], env, run_dir / "logs")
+                procs[name] = ManagedProcess(name, cmds[name], env, run_dir / "logs",
+                                             watch=RECORDER_READY if name == "recorder" else ())
         if "recorder" in procs:
             wait_for_recorder(procs["recorder"], [procs["sim"], procs["controller"]])
         dead = [n for n, p in procs.items() if not p.running()]
