@@ -29,7 +29,7 @@ def run_loop_episode(loop: ControlLoop, env: InsertionEnv, spec: EpisodeSpec, st
     env.reset(seed=start_seed)
     run = EpisodeRun(spec)
     stamp = CLOCK[0] = CLOCK[0] + 1_000_000_000
-    loop.start_episode(run, stamp)
+    loop.start_episode(run, stamp, world_was_reset=True)  # the lockstep sim teleported the arm
     step = 0
     while not run.done:
         loop.depth = env.insertion_depth
@@ -88,7 +88,7 @@ def test_resent_state_is_answered_but_not_recorded_twice(gear_setup):
                        sigma=np.full(3, 2.0), noise_seed=3, x_goal=trainer.x_ref)
     run = EpisodeRun(spec)
     stamp = CLOCK[0] = CLOCK[0] + 1_000_000_000
-    loop.start_episode(run, stamp)
+    loop.start_episode(run, stamp, world_was_reset=True)
     tau1, _ = loop.on_joint_state(NAMES, env.q, env.dq, stamp, 0.0)
     tau1 = tau1.copy()
     eps = run.eps[0].copy()

@@ -4,23 +4,46 @@ node needs (joint names, sizes, stamp order, stale state, deadline misses, polic
 ``ControlLoop.on_joint_state`` runs once per joint state and always returns a finite torque
 (the flow controller, or the safe hold on any problem). Faults latch in the
 ``FlowController`` until ``clear_fault``; ``mode`` and ``fault`` say what is being commanded.
+
+Bad input is cheap: a rejected message is counted and its reason kept (``take_rejection_report``
+gives the node one line to log from a slow timer), never logged from the 1 kHz path. Fault and
+rejection texts are bounded (``FAULT_TEXT_MAX``), whatever the message carried.
 """
 
 from __future__ import annotations
 
+import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from .arm_model import ArmModel
-from .controller import FlowController
-from .episode import EpisodeRun
+from .controller import (
+    DQ_IMPLAUSIBLE,
+    DQ_NOT_FINITE,
+    PROBLEM_BASE,
+    Q_IMPLAUSIBLE,
+    Q_NOT_FINITE,
+    FlowController,
+    state_problem,
+)
+from .episode import EpisodeRun, check_task_depth
 from .flow_eval import FlowEvaluator
 from .flow_spec import FlowArchitecture
 from .lyapunov import LyapunovMonitor
-from .panda_spec import JOINT_NAMES, Q_MAX, Q_MIN
-from .policy_params import PolicyParameterError, PolicyParameters
+from .panda_spec import (
+    DQ_PLAUSIBLE_FACTOR,
+    DQ_PLAUSIBLE_MAX,
+    JOINT_NAMES,
+    Q_MAX,
+    Q_MIN,
+    Q_PLAUSIBLE_MARGIN,
+    Q_PLAUSIBLE_MAX,
+    Q_PLAUSIBLE_MIN,
+)
+from .policy_params import POLICY_LIMITS, PolicyLimits, PolicyParameterError, PolicyParameters
 from .torque_law import TorqueLawConfig
 
 # ControllerStatus modes (same numbers as nf_msgs/msg/ControllerStatus).
@@ -30,6 +53,24 @@ NO_POLICY = "waiting for policy parameters"
 # realtime drivers and hardware), "policy" runs the deterministic controller, "pause" does not
 # answer at all (a lockstep simulator then waits instead of burning CPU during the PPO update).
 IDLE_MODES = ("hold", "policy", "pause")
+FAULT_TEXT_MAX = 300  # characters: longest fault or rejection text the loop keeps, publishes or logs
+_PREVIEW_NAMES = 3  # names shown in a bad-names reason
+_PREVIEW_NAME_CHARS = 40  # characters shown of each
+
+
+def bound_text(text: str, limit: int = FAULT_TEXT_MAX) -> str:
+    """``text`` cut to at most ``limit`` characters, saying how many were dropped."""
+    if len(text) <= limit:
+        return text
+    tail = f"... [+{len(text) - limit} chars]"
+    return text[: max(0, limit - len(tail))] + tail
+
+
+def _names_preview(names: Sequence[str]) -> str:
+    """A few names (each cut short) and how many more: bounded whatever ``names`` holds."""
+    shown = [repr(str(n)[:_PREVIEW_NAME_CHARS]) for n in names[:_PREVIEW_NAMES]]
+    more = len(names) - len(shown)
+    return "[" + ", ".join(shown) + (f", ... and {more} more" if more > 0 else "") + "]"
 
 
 class JointStateError(ValueError):
@@ -45,12 +86,16 @@ class JointMap:
         self._index = np.arange(len(self.joint_names))
 
     def _build(self, names: list[str]) -> np.ndarray:
+        expected = list(self.joint_names)
+        if len(names) > 4 * len(expected):  # do not scan a huge list: its size is reason enough
+            raise JointStateError(f"unknown joint name(s): {len(names)} names {_names_preview(names)}; "
+                                  f"expected {expected}")
         known = set(self.joint_names)
         unknown = [n for n in names if n not in known]
         if unknown:
-            raise JointStateError(f"unknown joint name(s) {unknown}; expected {list(self.joint_names)}")
+            raise JointStateError(f"unknown joint name(s) {_names_preview(unknown)}; expected {expected}")
         if len(set(names)) != len(names):
-            raise JointStateError(f"duplicate joint names in {names}")
+            raise JointStateError(f"duplicate joint names in {_names_preview(names)}")
         missing = [n for n in self.joint_names if n not in names]
         if missing:
             raise JointStateError(f"missing joint(s) {missing}")
@@ -59,6 +104,8 @@ class JointMap:
     def map(self, names: Sequence[str], position: Sequence[float], velocity: Sequence[float]
             ) -> tuple[np.ndarray, np.ndarray]:
         """(q, dq) in controller order; ``JointStateError`` for unknown/missing names or wrong sizes."""
+        if len(names) > 4 * len(self.joint_names):
+            self._build(names)  # raises, without copying the list
         names = list(names)
         if names != self._names:
             self._index = self._build(names)
@@ -135,32 +182,43 @@ class ControlLoop:
     """Joint states to torques through a ``FlowController``; owns the policy and the fault counters."""
 
     def __init__(self, arm: ArmModel, law: TorqueLawConfig | None = None, config: LoopConfig | None = None,
-                 joint_names: Sequence[str] = JOINT_NAMES) -> None:
+                 joint_names: Sequence[str] = JOINT_NAMES, limits: PolicyLimits = POLICY_LIMITS) -> None:
         self.config = config or LoopConfig()
         self.config.check()
         self.joints = JointMap(joint_names)
         self.controller = FlowController(arm, _NoPolicy(), law)  # type: ignore[arg-type]
+        self.limits = limits  # bounds on the policies set_policy installs
         self.policy: PolicyParameters | None = None
         self._pending: tuple[PolicyParameters, FlowEvaluator] | None = None
         self.episode_active = False
         self.episode: EpisodeRun | None = None
         self._episode_from = 0  # ns: the episode starts at the first state stamped at or after this
         self._episode_last = -1  # ns: stamp of the last state the episode consumed
+        self._episode_world_reset = False  # the episode's first command may skip the rate limit
         self.resetting = False  # the world is being reset for an episode: answer no state
         self._episode_eps = np.zeros(3)
         self._episode_tau = np.zeros(arm.nq)  # command sent for the last state of the episode
         self._u_mean = np.zeros(3)
         self.depth = float("nan")  # latest insertion depth from the simulator's task status (m), if any
+        self.task_success = False  # latest success flag of the task status
         self.latency = LatencyStats()
         self.monitor = LyapunovMonitor(dt=0.02, tolerance=1e-3, time_constant=0.1)
+        self._lyapunov_time: float | None = None  # clock (s) of the monitor's last sample
         self.n = arm.nq
         self.q = np.zeros(self.n)  # last valid joint state (rad, rad/s)
         self.dq = np.zeros(self.n)
+        # plausible joint states (panda_spec): beyond these a reading faults in every mode
+        self.q_min, self.q_max = Q_PLAUSIBLE_MIN.copy(), Q_PLAUSIBLE_MAX.copy()
+        self.dq_max = DQ_PLAUSIBLE_MAX.copy()
         self.have_state = False
         self.last_state_time = -np.inf  # wall time (s) of the last joint state
-        self._last_stamp = -1  # ns
+        self._last_stamp = -1  # ns, stamp of the last accepted state (-1: take any)
         self.steps = 0
-        self.bad_inputs = 0
+        self.bad_inputs = 0  # joint states rejected (names, sizes, stamps, values)
+        self.last_rejection = ""  # why the latest joint state was rejected
+        self.bad_task_status = 0  # task status messages rejected
+        self.last_task_status_error = ""
+        self._reported = (0, 0)  # (bad_inputs, bad_task_status) at the last take_rejection_report
         self.faults = 0  # times a fault latched
         self.deadline_misses = 0
         self._consecutive_misses = 0
@@ -177,6 +235,7 @@ class ControlLoop:
         q = 0.5 * (Q_MIN + Q_MAX)
         scratch.step(q, np.zeros(self.n))
         scratch.lyapunov(q, np.zeros(self.n))
+        state_problem(q, q, self.q_min, self.q_max, self.dq_max)
 
     # ------------------------------------------------------------------ status
     @property
@@ -199,32 +258,63 @@ class ControlLoop:
         return self.policy.version if self.policy is not None else 0
 
     def _latch(self, reason: str) -> bool:
-        """Latch a fault; True if this is a new one (the caller logs it)."""
+        """Latch a fault (text bounded); True if this is a new one (the caller logs it)."""
         if self.controller.fault:
             return False
-        self.controller.fault = reason
+        self.controller.fault = bound_text(reason)
         self.faults += 1
         return True
 
     def clear_fault(self) -> str:
-        """Re-arm after a fault; returns the fault that was cleared."""
+        """Re-arm after a fault; returns the fault that was cleared.
+
+        The loop also forgets the stamp of the last accepted state: the next state's stamp is the
+        new time base. Otherwise one state stamped far in the future (or a driver restarted with
+        its clock back at zero) would make every later state "out of order" again, forever.
+        """
         old = self.controller.fault
         self.controller.clear_fault()
         self._consecutive_misses = 0
+        self._last_stamp = -1
         return old
+
+    def take_rejection_report(self) -> str | None:
+        """One bounded line about the messages rejected since the last call (None if there were
+        none): for the node to log from a slow timer instead of logging on the 1 kHz path."""
+        seen = (self.bad_inputs, self.bad_task_status)
+        if seen == self._reported:
+            return None
+        n_state, n_task = seen[0] - self._reported[0], seen[1] - self._reported[1]
+        self._reported = seen
+        parts = []
+        if n_state:
+            parts.append(f"{n_state} joint state(s) rejected ({seen[0]} in all), last: {self.last_rejection}")
+        if n_task:
+            parts.append(f"{n_task} task status message(s) rejected ({seen[1]} in all), last: "
+                         f"{self.last_task_status_error}")
+        return bound_text("; ".join(parts), 2 * FAULT_TEXT_MAX)
 
     # ------------------------------------------------------------------ policy
     def set_policy(self, params: PolicyParameters) -> bool:
         """Validate and install new parameters: now (True) or, during an episode, at its end (False).
 
-        Raises ``PolicyParameterError`` when they do not fit this arm.
+        Raises ``PolicyParameterError`` when they do not fit this arm, are beyond ``self.limits``
+        (noise, S, D, weights, flow size, x_ref out of reach), or their version is older than the
+        installed (or queued) one; re-sending the same version is fine.
         """
         if params.arch.dim != 3:
             raise PolicyParameterError(f"the arm needs a 3-D flow, got dim={params.arch.dim}")
+        newest = max(self.policy.version if self.policy is not None else -1,
+                     self._pending[0].version if self._pending is not None else -1)
+        if params.version < newest:
+            raise PolicyParameterError(
+                f"version {params.version} is older than version {newest} already installed or queued "
+                "(versions must not go backwards; a new learner run needs a restarted controller)")
+        params.check_limits(self.limits, reach=True)
         try:
             evaluator = FlowEvaluator.from_params(params)
         except ValueError as exc:
-            raise PolicyParameterError(f"flow evaluator: {exc}") from None
+            raise PolicyParameterError(bound_text(f"flow evaluator: {exc}")) from None
         if self.episode_active:
             self._pending = (params, evaluator)
             return False
@@ -236,10 +326,15 @@ class ControlLoop:
         self.policy = params
         self._pending = None
         self.monitor.reset()
+        self._lyapunov_time = None
 
-    def start_episode(self, run: EpisodeRun, first_stamp_ns: int = 0) -> None:
+    def start_episode(self, run: EpisodeRun, first_stamp_ns: int = 0, world_was_reset: bool = False) -> None:
         """Run ``run`` from the first joint state stamped at or after ``first_stamp_ns`` (the reset state).
 
+        ``world_was_reset``: a simulator teleported the arm to the start for this episode, so the
+        torque sent before no longer acts on anything and the episode's first command starts
+        without a rate limit (as the trainer's in-process rollout does). Default False: the torque
+        rate limit holds at every tick, the first of the episode included (hardware, no reset).
         Raises ``ValueError`` without a policy, with a latched fault or while another episode runs.
         """
         if self.policy is None:
@@ -251,6 +346,7 @@ class ControlLoop:
         self.episode = run
         self._episode_from = int(first_stamp_ns)
         self._episode_last = -1
+        self._episode_world_reset = bool(world_was_reset)
         self.episode_active = True
 
     def end_episode(self) -> EpisodeRun | None:
@@ -262,6 +358,21 @@ class ControlLoop:
             self._install(*self._pending)
         return run
 
+    # ------------------------------------------------------------------ task status
+    def on_task_status(self, depth: float, success: bool) -> str:
+        """Take the simulator's task status (insertion depth in m, success): "" when used, else the
+        reason it was rejected (counted, kept for ``take_rejection_report``; depth and success
+        keep their previous values, so a spoofed depth never reaches a record or a result)."""
+        try:
+            value = check_task_depth(depth)
+        except ValueError as exc:
+            self.bad_task_status += 1
+            self.last_task_status_error = reason = bound_text(str(exc))
+            return reason
+        self.depth = value
+        self.task_success = bool(success)
+        return ""
+
     # ------------------------------------------------------------------ the 1 kHz step
     def on_joint_state(self, names: Sequence[str], position: Sequence[float], velocity: Sequence[float],
                        stamp_ns: int, now: float) -> tuple[np.ndarray, str]:
@@ -270,6 +381,11 @@ class ControlLoop:
         Returns (torque, new_fault): ``new_fault`` is the reason when this state latched a fault.
         The torque is an internal buffer: publish or copy it before the next call. ``answers(stamp)``
         says whether a state should be answered at all (``idle_mode`` "pause").
+
+        Every state, in every mode, is checked: names and sizes, stamp order, finite values, q
+        within the joint limits (+ margin) and |dq| within the velocity limits (x factor); see
+        ``panda_spec``. A rejected state is counted, latches the safe hold and answers with the
+        hold of the last valid state; it does not move the loop's notion of time.
         """
         self.steps += 1
         self.last_state_time = now
@@ -277,20 +393,14 @@ class ControlLoop:
         try:
             q, dq = self.joints.map(names, position, velocity)
         except JointStateError as exc:
-            self.bad_inputs += 1
-            reason = f"bad joint state: {exc}"
-            return self._hold_last(), reason if self._latch(reason) else ""
+            return self._reject(f"bad joint state: {exc}")
         if stamp_ns < self._last_stamp:
-            self.bad_inputs += 1
-            reason = f"joint state out of order: stamp {stamp_ns} ns is older than the previous {self._last_stamp} ns"
-            return self._hold_last(), reason if self._latch(reason) else ""
+            return self._reject(f"joint state out of order: stamp {stamp_ns} ns is older than the previous "
+                                f"{self._last_stamp} ns")
+        problem = state_problem(q, dq, self.q_min, self.q_max, self.dq_max)
+        if problem:
+            return self._reject(self._problem_text(problem, q, dq))
         self._last_stamp = stamp_ns
-        bad_q, bad_dq = ~np.isfinite(q), ~np.isfinite(dq)
-        if bad_q.any() or bad_dq.any():
-            self.bad_inputs += 1
-            which = [self.joints.joint_names[i] for i in np.flatnonzero(bad_q | bad_dq)]
-            reason = f"joint state not finite (NaN/Inf) for {which}"
-            return self._hold_last(), reason if self._latch(reason) else ""
         had_fault = ctrl.fault
         run = self.episode
         if run is not None and stamp_ns >= self._episode_from and not had_fault:
@@ -300,12 +410,36 @@ class ControlLoop:
         else:
             tau = ctrl.step(q, dq)
         new = ""
-        if ctrl.fault and not had_fault:  # the controller latched (q out of range, flow not finite, ...)
+        if ctrl.fault and not had_fault:  # the controller latched (flow not finite, ...)
+            ctrl.fault = bound_text(ctrl.fault)
             self.faults += 1
             new = ctrl.fault
         self.q[:], self.dq[:] = q, dq
         self.have_state = True
         return tau, new
+
+    def _reject(self, reason: str) -> tuple[np.ndarray, str]:
+        """Count a rejected state, keep its reason, latch the hold; answer with the last valid state's hold."""
+        self.bad_inputs += 1
+        self.last_rejection = reason
+        tau = self._hold_last()
+        return tau, self.controller.fault if self._latch(reason) else ""
+
+    def _problem_text(self, problem: int, q: np.ndarray, dq: np.ndarray) -> str:
+        code, i = divmod(problem, PROBLEM_BASE)
+        name = self.joints.joint_names[i]
+        if code == Q_NOT_FINITE or code == DQ_NOT_FINITE:
+            which = "position" if code == Q_NOT_FINITE else "velocity"
+            bad = [self.joints.joint_names[j] for j in range(self.n)
+                   if not (math.isfinite(q[j]) and math.isfinite(dq[j]))]
+            return f"joint state not finite (NaN/Inf) for {bad} (first: {name} {which})"
+        if code == Q_IMPLAUSIBLE:
+            return (f"joint position implausible: {name} = {q[i]:.6g} rad outside [{self.q_min[i]:.4f}, "
+                    f"{self.q_max[i]:.4f}] (joint limits +- {math.degrees(Q_PLAUSIBLE_MARGIN):.0f} deg)")
+        if code == DQ_IMPLAUSIBLE:
+            return (f"joint velocity implausible: {name} = {dq[i]:.6g} rad/s beyond +-{self.dq_max[i]:.4g} rad/s "
+                    f"({DQ_PLAUSIBLE_FACTOR:g} x the velocity limit)")
+        return f"joint state rejected (code {problem})"
 
     def _episode_step(self, run: EpisodeRun, q: np.ndarray, dq: np.ndarray, stamp_ns: int) -> np.ndarray:
         """One step of a running episode: held noise, then the record. A repeated state (a lockstep
@@ -316,8 +450,8 @@ class ControlLoop:
         if not new and not ctrl.fault:
             return self._episode_tau
         if new:
-            if run.steps == 0:
-                ctrl.reset_rate_limit()  # the world was just reset: no rate limit on the first command
+            if run.steps == 0 and self._episode_world_reset:
+                ctrl.reset_rate_limit()  # the sim teleported the arm: the old command acts on nothing
             self._episode_eps = run.noise()
         tau = ctrl.step(q, dq, self._episode_eps)
         if new and not ctrl.fault:
@@ -370,15 +504,29 @@ class ControlLoop:
         return ""
 
     # ------------------------------------------------------------------ energy
-    def lyapunov(self) -> tuple[float, float]:
+    def lyapunov_value(self) -> float:
+        """V (J) at the last valid state, without feeding the monitor (NaN without a policy or state):
+        for readers other than the one monitor caller (e.g. the action's feedback)."""
+        if self.policy is None or not self.have_state:
+            return float("nan")
+        try:
+            return float(self.controller.lyapunov(self.q, self.dq))
+        except ValueError:
+            return float("nan")
+
+    def lyapunov(self, now: float | None = None) -> tuple[float, float]:
         """(V in J, filtered dV/dt in W) at the last valid state; NaN without a policy or state.
 
-        Call at the monitor's rate (every 20 ms).
+        Feeds the monitor with dt = the real time since its previous sample: ``now`` (s, any
+        monotonic clock; ``time.monotonic()`` if None). Call it from one place (the status timer);
+        a second call at the same ``now`` adds no sample.
         """
         if self.policy is None or not self.have_state:
             return float("nan"), float("nan")
-        try:
-            value = float(self.controller.lyapunov(self.q, self.dq))
-        except ValueError:
-            value = float("nan")
-        return value, self.monitor.update(value)
+        value = self.lyapunov_value()
+        t = time.monotonic() if now is None else float(now)
+        last = self._lyapunov_time
+        if last is not None and not t > last:
+            return value, self.monitor.rate
+        self._lyapunov_time = t
+        return value, self.monitor.update(value, None if last is None else t - last)

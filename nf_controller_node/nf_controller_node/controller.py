@@ -37,6 +37,27 @@ def _state_fault(q: np.ndarray, dq: np.ndarray, q_sane: float) -> int:
 
 
 _FAULTS = {1: "joint positions not finite", 2: "joint velocities not finite", 3: "joint position out of range"}
+
+# Codes of ``state_problem`` (code * PROBLEM_BASE + joint index).
+Q_NOT_FINITE, DQ_NOT_FINITE, Q_IMPLAUSIBLE, DQ_IMPLAUSIBLE = 1, 2, 3, 4
+PROBLEM_BASE = 1024
+
+
+@njit(cache=True)
+def state_problem(q: np.ndarray, dq: np.ndarray, q_lo: np.ndarray, q_hi: np.ndarray, dq_max: np.ndarray) -> int:
+    """0 if every joint's (q, dq) is finite with q_lo <= q <= q_hi and |dq| <= dq_max; else
+    code * PROBLEM_BASE + index of the first bad joint (codes Q_NOT_FINITE .. DQ_IMPLAUSIBLE).
+    One compiled pass, no allocation: cheap enough for every joint state."""
+    for i in range(q.shape[0]):
+        if not np.isfinite(q[i]):
+            return Q_NOT_FINITE * PROBLEM_BASE + i
+        if not np.isfinite(dq[i]):
+            return DQ_NOT_FINITE * PROBLEM_BASE + i
+        if q[i] < q_lo[i] or q[i] > q_hi[i]:
+            return Q_IMPLAUSIBLE * PROBLEM_BASE + i
+        if abs(dq[i]) > dq_max[i]:
+            return DQ_IMPLAUSIBLE * PROBLEM_BASE + i
+    return 0
 _FLOW_FAILED = -1
 
 

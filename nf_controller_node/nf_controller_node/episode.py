@@ -17,6 +17,35 @@ import numpy as np
 
 from .reward import REWARD_TERMS, RewardWeights, gaussian_log_prob, reward_terms
 
+MAX_EPISODE_SECONDS = 3600.0  # s, the longest episode a goal may ask for
+MAX_TASK_DEPTH = 1.0  # m, |insertion depth| a task status may report (the fixtures are a few cm deep)
+
+
+def check_goal_duration(duration: float, default: float) -> float:
+    """The episode length (s) a RunEpisode goal asks for: 0 means ``default`` (documented meaning);
+    ``ValueError`` with the reason for a negative, NaN, infinite or over-an-hour duration."""
+    try:
+        value = float(duration)
+    except (TypeError, ValueError):
+        raise ValueError(f"episode duration must be a number of seconds, got {duration!r}") from None
+    if not math.isfinite(value) or value < 0.0:
+        raise ValueError(f"episode duration must be finite and >= 0 s (0: the default {default} s), got {value}")
+    if value > MAX_EPISODE_SECONDS:
+        raise ValueError(f"episode duration {value} s is longer than {MAX_EPISODE_SECONDS:.0f} s")
+    return float(default) if value == 0.0 else value
+
+
+def check_task_depth(depth: float) -> float:
+    """An insertion depth (m) from a task status message, or ``ValueError`` with the reason when it
+    is not finite or beyond ``MAX_TASK_DEPTH``: check it before it goes into a record or a result."""
+    try:
+        value = float(depth)
+    except (TypeError, ValueError):
+        raise ValueError(f"task status depth must be a number of metres, got {depth!r}") from None
+    if not math.isfinite(value) or abs(value) >= MAX_TASK_DEPTH:
+        raise ValueError(f"task status depth {value:.6g} m is not finite or not within +-{MAX_TASK_DEPTH} m")
+    return value
+
 
 @dataclass(frozen=True)
 class EpisodeSpec:
@@ -51,8 +80,8 @@ class EpisodeSpec:
                 raise ValueError(f"{name} must be a positive number of seconds, got {value}")
         if self.decision_period < self.control_period:
             raise ValueError(f"decision_period {self.decision_period} s is shorter than the control period")
-        if self.duration > 3600.0:
-            raise ValueError(f"duration {self.duration} s is longer than an hour")
+        if self.duration > MAX_EPISODE_SECONDS:
+            raise ValueError(f"duration {self.duration} s is longer than {MAX_EPISODE_SECONDS:.0f} s")
         if self.chunk_decisions < 1:
             raise ValueError(f"chunk_decisions must be >= 1, got {self.chunk_decisions}")
         if self.sigma is not None and not (np.all(np.isfinite(self.sigma)) and np.all(self.sigma > 0.0)):

@@ -16,7 +16,8 @@ import math
 class LyapunovMonitor:
     """Tracks V every control period: filtered rate dV/dt, the largest single-step rise, rise count.
 
-    ``tolerance`` (J) is the largest per-step increase that counts as integration noise.
+    ``tolerance`` (J) is the largest per-step increase that counts as integration noise. ``dt`` is
+    the sampling period assumed when ``update`` is not told the real time since the last sample.
     Pure Python floats: about a microsecond per update.
     """
 
@@ -25,6 +26,7 @@ class LyapunovMonitor:
             raise ValueError("dt and time_constant must be > 0, tolerance >= 0")
         self.dt = dt
         self.tolerance = tolerance
+        self.time_constant = time_constant
         self._alpha = dt / (time_constant + dt)
         self.reset()
 
@@ -36,14 +38,20 @@ class LyapunovMonitor:
         self.rises = 0  # steps whose increase exceeded the tolerance
         self.samples = 0
 
-    def update(self, value: float) -> float:
-        """Record V for this period; returns the filtered rate. Non-finite V counts as a rise."""
+    def update(self, value: float, dt: float | None = None) -> float:
+        """Record V; returns the filtered rate. ``dt`` (s): time since the previous sample (the
+        constructor's ``dt`` if None); the filter's weight follows it, so irregular sampling gives
+        the right dV/dt. Non-finite V counts as a rise."""
         if not math.isfinite(value):
             self.rises += 1
             return self.rate
         if self.samples:
             step = value - self.value
-            self.rate += self._alpha * (step / self.dt - self.rate)
+            if dt is None:
+                dt, alpha = self.dt, self._alpha
+            else:
+                alpha = dt / (self.time_constant + dt)
+            self.rate += alpha * (step / dt - self.rate)
             if step > self.max_rise:
                 self.max_rise = step
             if step > self.tolerance:

@@ -20,6 +20,20 @@ Q_MIN = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973]
 Q_MAX = np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973])  # rad
 DQ_MAX = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])  # rad/s
 
+# Plausibility of a measured joint state (``control_loop.ControlLoop``, every mode): a reading
+# outside these bounds is not the state of a working Panda (sensor fault, spoofed message) and
+# latches the safe hold on the last valid state. The position margin covers the simulator's soft
+# joint limits and encoder offsets; the velocity factor leaves room for overshoot under contact
+# while refusing readings no real Panda produces (the datasheet limits are 2.175 / 2.61 rad/s).
+Q_PLAUSIBLE_MARGIN = float(np.deg2rad(5.0))  # rad beyond the datasheet joint limits
+DQ_PLAUSIBLE_FACTOR = 1.5  # x DQ_MAX
+Q_PLAUSIBLE_MIN = Q_MIN - Q_PLAUSIBLE_MARGIN  # rad
+Q_PLAUSIBLE_MAX = Q_MAX + Q_PLAUSIBLE_MARGIN  # rad
+DQ_PLAUSIBLE_MAX = DQ_PLAUSIBLE_FACTOR * DQ_MAX  # rad/s
+# Reach: the Panda's TCP stays within 855 mm of joint 2 (333 mm above the base) plus the held part;
+# a goal farther than this from the base frame's origin cannot be reached by any configuration.
+MAX_REACH = 1.2  # m
+
 # Drive-side joint dynamics, used by the simulator and by the controller's rigid-body model.
 # Armature: reflected rotor inertia (rotor inertia x gear ratio^2, roughly 1e-5 kg m^2 x 100^2),
 # added to the diagonal of the joint-space mass matrix (the value MuJoCo Menagerie uses for

@@ -6,16 +6,40 @@ and ``fill_msg`` writes them, so the node modules stay thin and this stays testa
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from .flow_spec import FlowArchitecture
+from .panda_spec import MAX_REACH
 
 
 class PolicyParameterError(ValueError):
-    """Raised when policy parameters are malformed (wrong sizes, non-finite, not positive definite)."""
+    """Raised when policy parameters are malformed (wrong sizes, non-finite, not positive definite)
+    or well-formed but beyond what the robot and the 1 kHz budget allow (``PolicyLimits``)."""
+
+
+@dataclass(frozen=True)
+class PolicyLimits:
+    """The one place of the bounds a controller puts on well-formed policy parameters.
+
+    Each bound is what the Panda and a 1 kHz step allow, with room for every setting the
+    configs and docs/results use (noise 1-5 N, S up to a few hundred N/m, D up to 60 N s/m,
+    weights within a few times the initialisation bound, n_flow <= 4 with n_hidden <= 32).
+    """
+
+    max_noise_std: float = 50.0  # N, exp(log_std): the Panda's TCP force is tens of N at most
+    min_noise_std: float = 1e-4  # N, exp(log_std) > 0: the episode's Gaussian needs a positive std
+    max_stiffness: float = 1.0e4  # N/m (latent units), largest eigenvalue of S
+    max_damping: float = 1.0e3  # N s/m (latent units), largest eigenvalue of D
+    max_abs_weight: float = 1.0e3  # any flow weight, dimensionless (default init bound: 1/sqrt(n_hidden))
+    max_flow_params: int = 20_000  # flow weights: the compiled step's p99 stays well under 1 ms (see docs)
+    max_reach: float = MAX_REACH  # m, |x_ref| from the arm's base frame origin
+
+
+POLICY_LIMITS = PolicyLimits()
 
 
 def _finite_array(name: str, values: Any, length: int | None = None) -> np.ndarray:
@@ -71,6 +95,36 @@ class PolicyParameters:
         self.x_ref = _finite_array("x_ref", self.x_ref, d)
         if self.version < 0:
             raise PolicyParameterError(f"version must be >= 0, got {self.version}")
+
+    def check_limits(self, limits: PolicyLimits = POLICY_LIMITS, reach: bool = True) -> None:
+        """Raise ``PolicyParameterError`` naming the first value beyond ``limits`` (the controller's
+        check before it installs parameters; ``validate`` only checks that they are well-formed).
+        ``reach``: also bound |x_ref| (arm tasks; the 2-D block's x_ref is not a base-frame point)."""
+        n = self.arch.n_params
+        if n > limits.max_flow_params:
+            raise PolicyParameterError(
+                f"flow too large for the 1 kHz step: {n} weights (n_flow={self.arch.n_flow}, "
+                f"n_hidden={self.arch.n_hidden}), at most {limits.max_flow_params}")
+        big = float(np.max(np.abs(self.weights))) if self.weights.size else 0.0
+        if big > limits.max_abs_weight:
+            raise PolicyParameterError(f"weights: |w| up to {big:.3g}, at most {limits.max_abs_weight:.3g}")
+        lo, hi = float(np.min(self.log_std)), float(np.max(self.log_std))
+        if hi > math.log(limits.max_noise_std) or lo < math.log(limits.min_noise_std):
+            raise PolicyParameterError(
+                f"log_std: values in [{lo:.4g}, {hi:.4g}] give a noise std outside "
+                f"[{limits.min_noise_std:.3g}, {limits.max_noise_std:.3g}] N "
+                f"(log_std in [{math.log(limits.min_noise_std):.3g}, {math.log(limits.max_noise_std):.3g}])")
+        for name, mat, most, unit in (("stiffness S", self.stiffness, limits.max_stiffness, "N/m"),
+                                      ("damping D", self.damping, limits.max_damping, "N s/m")):
+            top = float(np.linalg.eigvalsh(mat)[-1])
+            if top > most:
+                raise PolicyParameterError(f"{name}: largest eigenvalue {top:.3g} {unit}, at most {most:.3g} {unit}")
+        if reach:
+            top = float(np.max(np.abs(self.x_ref)))  # |x| >= its largest entry; no overflow for 1e300
+            dist = top if top >= limits.max_reach else float(np.linalg.norm(self.x_ref))
+            if dist >= limits.max_reach:
+                raise PolicyParameterError(
+                    f"x_ref: {dist:.3g} m from the arm's base, beyond its reach ({limits.max_reach} m)")
 
     @classmethod
     def from_msg(cls, msg: Any) -> PolicyParameters:
