@@ -83,6 +83,8 @@ class JointMap:
     def __init__(self, joint_names: Sequence[str] = JOINT_NAMES) -> None:
         self.joint_names = tuple(joint_names)
         self._names: list[str] | None = None
+        self._bad_names: list[str] | None = None  # the last list that failed, and why
+        self._bad_text = ""
         self._index = np.arange(len(self.joint_names))
 
     def _build(self, names: list[str]) -> np.ndarray:
@@ -108,7 +110,13 @@ class JointMap:
             self._build(names)  # raises, without copying the list
         names = list(names)
         if names != self._names:
-            self._index = self._build(names)
+            if names == self._bad_names:  # the same bad list again (a flood): no rebuild, no new text
+                raise JointStateError(self._bad_text)
+            try:
+                self._index = self._build(names)
+            except JointStateError as exc:
+                self._bad_names, self._bad_text = names, str(exc)
+                raise
             self._names = names
         n = len(names)
         if len(position) != n or len(velocity) != n:
@@ -215,7 +223,7 @@ class ControlLoop:
         self._last_stamp = -1  # ns, stamp of the last accepted state (-1: take any)
         self.steps = 0
         self.bad_inputs = 0  # joint states rejected (names, sizes, stamps, values)
-        self.last_rejection = ""  # why the latest joint state was rejected
+        self._rejection: tuple = ()  # why the latest one was rejected, formatted only when read
         self.bad_task_status = 0  # task status messages rejected
         self.last_task_status_error = ""
         self._reported = (0, 0)  # (bad_inputs, bad_task_status) at the last take_rejection_report
@@ -278,6 +286,11 @@ class ControlLoop:
         self._last_stamp = -1
         return old
 
+    @property
+    def last_rejection(self) -> str:
+        """Why the latest rejected joint state was rejected ("" if none was), bounded."""
+        return bound_text(self._rejection_text(self._rejection)) if self._rejection else ""
+
     def take_rejection_report(self) -> str | None:
         """One bounded line about the messages rejected since the last call (None if there were
         none): for the node to log from a slow timer instead of logging on the 1 kHz path."""
@@ -295,26 +308,33 @@ class ControlLoop:
         return bound_text("; ".join(parts), 2 * FAULT_TEXT_MAX)
 
     # ------------------------------------------------------------------ policy
-    def set_policy(self, params: PolicyParameters) -> bool:
+    def prepare_policy(self, params: PolicyParameters) -> FlowEvaluator:
+        """Check ``params`` against this arm and ``self.limits`` and build their evaluator: the slow,
+        state-free part of a swap (call it off the tick thread). Raises ``PolicyParameterError``."""
+        if params.arch.dim != 3:
+            raise PolicyParameterError(f"the arm needs a 3-D flow, got dim={params.arch.dim}")
+        params.check_limits(self.limits, reach=True)
+        try:
+            return FlowEvaluator.from_params(params)
+        except ValueError as exc:
+            raise PolicyParameterError(bound_text(f"flow evaluator: {exc}")) from None
+
+    def set_policy(self, params: PolicyParameters, evaluator: FlowEvaluator | None = None) -> bool:
         """Validate and install new parameters: now (True) or, during an episode, at its end (False).
 
         Raises ``PolicyParameterError`` when they do not fit this arm, are beyond ``self.limits``
         (noise, S, D, weights, flow size, x_ref out of reach), or their version is older than the
-        installed (or queued) one; re-sending the same version is fine.
+        installed (or queued) one; re-sending the same version is fine. ``evaluator`` from
+        ``prepare_policy`` skips the checks and the build done there.
         """
-        if params.arch.dim != 3:
-            raise PolicyParameterError(f"the arm needs a 3-D flow, got dim={params.arch.dim}")
         newest = max(self.policy.version if self.policy is not None else -1,
                      self._pending[0].version if self._pending is not None else -1)
         if params.version < newest:
             raise PolicyParameterError(
                 f"version {params.version} is older than version {newest} already installed or queued "
                 "(versions must not go backwards; a new learner run needs a restarted controller)")
-        params.check_limits(self.limits, reach=True)
-        try:
-            evaluator = FlowEvaluator.from_params(params)
-        except ValueError as exc:
-            raise PolicyParameterError(bound_text(f"flow evaluator: {exc}")) from None
+        if evaluator is None:
+            evaluator = self.prepare_policy(params)
         if self.episode_active:
             self._pending = (params, evaluator)
             return False
@@ -393,13 +413,12 @@ class ControlLoop:
         try:
             q, dq = self.joints.map(names, position, velocity)
         except JointStateError as exc:
-            return self._reject(f"bad joint state: {exc}")
+            return self._reject(("names", exc))
         if stamp_ns < self._last_stamp:
-            return self._reject(f"joint state out of order: stamp {stamp_ns} ns is older than the previous "
-                                f"{self._last_stamp} ns")
+            return self._reject(("order", stamp_ns, self._last_stamp))
         problem = state_problem(q, dq, self.q_min, self.q_max, self.dq_max)
         if problem:
-            return self._reject(self._problem_text(problem, q, dq))
+            return self._reject(("value", problem, q, dq))
         self._last_stamp = stamp_ns
         had_fault = ctrl.fault
         run = self.episode
@@ -418,12 +437,25 @@ class ControlLoop:
         self.have_state = True
         return tau, new
 
-    def _reject(self, reason: str) -> tuple[np.ndarray, str]:
-        """Count a rejected state, keep its reason, latch the hold; answer with the last valid state's hold."""
+    def _reject(self, why: tuple) -> tuple[np.ndarray, str]:
+        """Count a rejected state and keep why (as data: the text is formatted only when a fault
+        latches or someone reads it, so a flood of bad states costs no string work); latch the
+        hold and answer with the hold of the last valid state."""
         self.bad_inputs += 1
-        self.last_rejection = reason
-        tau = self._hold_last()
-        return tau, self.controller.fault if self._latch(reason) else ""
+        self._rejection = why
+        tau = self.controller.hold_last()
+        if self.controller.fault:
+            return tau, ""
+        self._latch(self._rejection_text(why))
+        return tau, self.controller.fault
+
+    def _rejection_text(self, why: tuple) -> str:
+        kind = why[0]
+        if kind == "names":
+            return f"bad joint state: {why[1]}"
+        if kind == "order":
+            return f"joint state out of order: stamp {why[1]} ns is older than the previous {why[2]} ns"
+        return self._problem_text(*why[1:])
 
     def _problem_text(self, problem: int, q: np.ndarray, dq: np.ndarray) -> str:
         code, i = divmod(problem, PROBLEM_BASE)
@@ -476,7 +508,7 @@ class ControlLoop:
 
     def _hold_last(self) -> np.ndarray:
         """Safe hold when the message itself is unusable: gravity of the last valid state, no damping."""
-        return self.controller.hold(self._nan, self._nan)
+        return self.controller.hold_last()
 
     def on_timer(self, now: float) -> tuple[np.ndarray | None, str]:
         """Stale-state watchdog (realtime use): (hold torque to publish or None, new fault reason)."""

@@ -180,6 +180,14 @@ class FlowController:
         self.tau_prev[:] = self.tau
         return self.tau
 
+    def hold_last(self) -> np.ndarray:
+        """Safe hold on the last valid state (its gravity, no damping): for a state that cannot be used."""
+        law = self.law
+        self.flags = safe_hold_torque(self._g_last, self._dq_zero, law.hold_damping, law.gravity_compensation,
+                                      self.tau_prev, law.torque_limits, law.max_step, self.tau)
+        self.tau_prev[:] = self.tau
+        return self.tau
+
     def _hold(self, q: np.ndarray, dq: np.ndarray, reason: str) -> np.ndarray:
         if not self.fault:
             self.fault = reason

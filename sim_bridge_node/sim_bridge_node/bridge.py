@@ -8,6 +8,10 @@ without a ROS graph. Two ways to drive it:
 - realtime: ``accept_command`` whenever a command arrives, ``step_realtime(now)`` every tick,
   which applies the last command until it is older than ``command_timeout`` and the safe hold
   (the simulator's gravity torque + joint damping) after that.
+
+A bad command costs less than a good one: it is counted and its reason kept (bounded to
+``ERROR_TEXT_MAX``); the node logs ``take_error_report()`` from its diagnostics timer, never per
+message.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from sim_bridge_node.env import InsertionEnv, Observation
 
 MODES = ("lockstep", "realtime")
 ACCEPTED, STALE, BAD = "accepted", "stale", "bad"  # outcomes of accept_command
+ERROR_TEXT_MAX = 300  # characters of a bad command's reason kept in last_error
 
 
 @dataclass(frozen=True)
@@ -65,7 +70,8 @@ class SimBridge:
         self.command_timeouts = 0  # times the realtime bridge fell into the safe hold for lack of commands
         self.hold_steps = 0
         self.in_hold = True  # realtime: no command yet
-        self.last_error = ""
+        self._error: tuple = ()  # why the latest bad command was ignored, formatted only when read
+        self._bad_reported = 0  # bad_commands at the last take_error_report
 
     # ------------------------------------------------------------------ state
     @property
@@ -104,26 +110,65 @@ class SimBridge:
         return self.gravity() - self.config.hold_damping * self.env.dq
 
     # ------------------------------------------------------------------ commands
+    def _checked(self, data: Sequence[float]) -> np.ndarray | tuple:
+        """The command as an array, or why not as data (kind, value): no string work and no
+        exception on the path a flood of bad commands takes."""
+        n = self.env.nu
+        try:
+            if len(data) != n:  # before converting a possibly huge message
+                return ("size", len(data))
+            arr = np.asarray(data, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError) as exc:
+            return ("type", exc)
+        if arr.size != n:
+            return ("size", arr.size)
+        if not np.isfinite(arr).all():
+            return ("finite", arr.copy())
+        return arr
+
+    def _error_text(self, error: tuple) -> str:
+        kind, value = error
+        if kind == "size":
+            return f"command has {value} values, expected {self.env.nu} ({', '.join(self.joint_names)})"
+        if kind == "finite":
+            names = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(value))]
+            return f"command contains NaN/Inf for {names}"
+        return f"command is not an array of numbers: {value}"
+
+    @property
+    def last_error(self) -> str:
+        """Why the latest bad command was ignored ("" if none was), at most ``ERROR_TEXT_MAX`` characters."""
+        if not self._error:
+            return ""
+        text = self._error_text(self._error)
+        if len(text) > ERROR_TEXT_MAX:
+            text = text[: ERROR_TEXT_MAX - 30] + f"... [+{len(text) - ERROR_TEXT_MAX + 30} chars]"
+        return text
+
     def check_command(self, data: Sequence[float]) -> np.ndarray:
         """The command as an array, or ``ValueError`` naming what is wrong with it."""
-        arr = np.asarray(data, dtype=np.float64).reshape(-1)
-        if arr.size != self.env.nu:
-            raise ValueError(f"command has {arr.size} values, expected {self.env.nu} ({', '.join(self.joint_names)})")
-        bad = ~np.isfinite(arr)
-        if bad.any():
-            names = [self.joint_names[i] for i in np.flatnonzero(bad)]
-            raise ValueError(f"command contains NaN/Inf for {names}")
+        arr = self._checked(data)
+        if isinstance(arr, tuple):
+            raise ValueError(self._error_text(arr))
         return arr
+
+    def take_error_report(self) -> str | None:
+        """One bounded line about the bad commands ignored since the last call (None if none): for
+        the node to log from its diagnostics timer instead of per message."""
+        n = self.bad_commands - self._bad_reported
+        if n == 0:
+            return None
+        self._bad_reported = self.bad_commands
+        return f"{n} bad effort command(s) ignored ({self.bad_commands} in all), last: {self.last_error}"
 
     def accept_command(self, data: Sequence[float], now: float, answers: int | None = None) -> str:
         """Take a command received at wall time ``now`` (s). Returns ACCEPTED, BAD (reason in
         ``last_error``) or, in lockstep, STALE when ``answers`` (the stamp of the state the command
         answers, if the sender says) is not the current state's."""
-        try:
-            arr = self.check_command(data)
-        except (ValueError, TypeError) as exc:
+        arr = self._checked(data)
+        if isinstance(arr, tuple):
             self.bad_commands += 1
-            self.last_error = str(exc)
+            self._error = arr
             return BAD
         if answers is not None and self.config.mode == "lockstep" and answers != self.stamp_ns:
             self.stale_commands += 1
