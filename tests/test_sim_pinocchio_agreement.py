@@ -82,3 +82,20 @@ def test_gear_scene_has_the_same_arm_dynamics():
             d.qvel[:] = 0.0
             mujoco.mj_forward(m, d)
         np.testing.assert_allclose(gear_data.qfrc_bias, free_data.qfrc_bias, rtol=0, atol=1e-12)
+
+
+def test_one_held_part_type_shared_by_sim_and_controller():
+    """The simulator's parts are panda_spec's, and held_part_by_name gives the controller the same ones."""
+    assert GEAR is panda_spec.GEAR_PART and PEG is panda_spec.PEG_PART
+    assert panda_spec.held_part_by_name("gear") is GEAR
+    assert panda_spec.held_part_by_name("peg") is PEG
+    assert panda_spec.held_part_by_name("none") is None
+    for bad in ("anvil", "", "Gear"):
+        with pytest.raises(ValueError, match="held_part must be one of"):
+            panda_spec.held_part_by_name(bad)
+    # the peg's TCP is its tip, 3 cm from the gear's bore mouth: the arm models must differ there
+    q = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
+    gear_x = ArmModel(part=panda_spec.held_part_by_name("gear")).tcp_position(q)
+    peg_x = ArmModel(part=panda_spec.held_part_by_name("peg")).tcp_position(q)
+    dz = float(panda_spec.PEG_TCP_IN_HAND[2] - panda_spec.TCP_IN_HAND[2])
+    assert abs(np.linalg.norm(peg_x - gear_x) - abs(dz)) < 1e-9

@@ -30,7 +30,6 @@ from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
 from nf_controller_node.reward import REWARD_TERMS, RewardWeights, gaussian_log_prob, reward_terms
 from sim_bridge_node.env import InsertionEnv
-from sim_bridge_node.held_parts import PEG
 
 from .config import TrainConfig
 
@@ -85,7 +84,7 @@ class RolloutRunner:
             self.x_ref = self.goal[BLOCK_AXES].copy()
         else:
             # the controller's arm model carries the same part (mass, TCP) as the simulated hand
-            self.arm = ArmModel(part=PEG if cfg.task == "peg" else panda_spec.GEAR_PART)
+            self.arm = ArmModel(part=panda_spec.held_part_by_name("peg" if cfg.task == "peg" else "gear"))
             self.x_ref = self.goal.copy()
 
     def start_seed(self, seed: int | None) -> int | None:

@@ -1,4 +1,4 @@
-"""Facts about the Franka Emika Panda and the held gear, shared by the controller and the simulator.
+"""Facts about the Franka Emika Panda and the held parts (gear, peg), shared by the controller and the simulator.
 
 Units: metres, kilograms, radians, newton-metres, seconds.
 """
@@ -93,15 +93,53 @@ def panda_urdf_path() -> str:
     )
 
 
+# Peg (peg-in-hole task): a 23 mm aluminium rod, 60 mm long, held with 10 mm of it between the
+# fingertip pads; its tip sits 40 mm below the fingertips so the fingers stay clear of the hole
+# block at full insertion.
+PEG_RADIUS = 0.0115  # m
+PEG_LENGTH = 0.060  # m
+PEG_TOP_IN_HAND = 0.0934  # m, z of the peg's upper face in the hand frame
+PEG_MASS = 2700.0 * np.pi * PEG_RADIUS**2 * PEG_LENGTH  # kg, aluminium (about 0.067 kg)
+PEG_COM_IN_HAND = np.array([0.0, 0.0, PEG_TOP_IN_HAND + 0.5 * PEG_LENGTH])  # m
+PEG_TCP_IN_HAND = np.array([0.0, 0.0, PEG_TOP_IN_HAND + PEG_LENGTH])  # m, tip centre
+PEG_TCP_FRAME = "peg_tcp"
+
+
+def peg_inertia() -> np.ndarray:
+    """Rotational inertia (3x3, kg m^2) of the solid peg about its centre of mass, hand axes."""
+    m, r, h = PEG_MASS, PEG_RADIUS, PEG_LENGTH
+    ixx = m * (3.0 * r**2 + h**2) / 12.0
+    return np.diag([ixx, ixx, 0.5 * m * r**2])
+
+
 @dataclass(frozen=True)
 class HeldPartInertia:
-    """Mass properties and tool-centre point of a part held rigidly by the hand (hand frame)."""
+    """A part held rigidly by the hand: mass properties and tool-centre point (hand frame), and the names
+    the simulator gives it. The one held-part type of the controller's arm model and the simulator."""
 
     mass: float  # kg
     com_in_hand: np.ndarray  # m, centre of mass in the panda_hand frame
     inertia: np.ndarray  # kg m^2, 3x3 about the centre of mass, hand axes
     tcp_in_hand: np.ndarray  # m, the point the controller drives to x_ref
+    kind: str = "gear"  # "gear" or "peg"
+    body: str = "gear"  # MuJoCo body name of the part
+    tcp_site: str = TCP_FRAME  # MuJoCo site name at the part's leading face (the TCP)
 
 
-GEAR_PART = HeldPartInertia(GEAR_MASS, GEAR_COM_IN_HAND, gear_inertia(), TCP_IN_HAND)
+GEAR_PART = HeldPartInertia(GEAR_MASS, GEAR_COM_IN_HAND, gear_inertia(), TCP_IN_HAND, "gear", "gear", TCP_FRAME)
+PEG_PART = HeldPartInertia(PEG_MASS, PEG_COM_IN_HAND, peg_inertia(), PEG_TCP_IN_HAND, "peg", "peg", PEG_TCP_FRAME)
+HELD_PARTS = {"gear": GEAR_PART, "peg": PEG_PART}
+HELD_PART_NAMES = ("gear", "peg", "none")
 
+
+def held_part_by_name(name: str) -> HeldPartInertia | None:
+    """The held part of a ``held_part`` parameter: ``gear`` or ``peg``, or None for ``none`` (bare hand).
+
+    Raises ``ValueError`` for any other name.
+    """
+    if name == "none":
+        return None
+    try:
+        return HELD_PARTS[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"held_part must be one of {HELD_PART_NAMES}, got {name!r}") from None

@@ -7,8 +7,6 @@ part's leading face (the point the controller drives to the goal).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import mujoco
 import numpy as np
 
@@ -20,47 +18,19 @@ GEAR_TEETH = 24  # drawn only, no contact
 GEAR_RGBA = np.array([0.95, 0.65, 0.1, 1.0])
 PEG_RGBA = np.array([0.2, 0.45, 0.95, 1.0])
 
-# Peg (not in panda_spec: the peg task is simulation only). A 23 mm aluminium rod, 60 mm long,
-# held with 10 mm of it between the fingertip pads; its tip sits 40 mm below the fingertips so
-# the fingers stay clear of the hole block at full insertion.
-PEG_RADIUS = 0.0115  # m
-PEG_LENGTH = 0.060  # m
-PEG_TOP_IN_HAND = 0.0934  # m, z of the peg's upper face in the hand frame
-PEG_MASS = 2700.0 * np.pi * PEG_RADIUS**2 * PEG_LENGTH  # kg, aluminium (about 0.067 kg)
-PEG_COM_IN_HAND = np.array([0.0, 0.0, PEG_TOP_IN_HAND + 0.5 * PEG_LENGTH])
-PEG_TCP_IN_HAND = np.array([0.0, 0.0, PEG_TOP_IN_HAND + PEG_LENGTH])  # tip centre
+# The peg's dimensions and the held-part type live in panda_spec (shared with the controller's arm
+# model); re-exported here for the scene builders.
+PEG_RADIUS = panda_spec.PEG_RADIUS
+PEG_LENGTH = panda_spec.PEG_LENGTH
+PEG_TOP_IN_HAND = panda_spec.PEG_TOP_IN_HAND
+PEG_MASS = panda_spec.PEG_MASS
+PEG_COM_IN_HAND = panda_spec.PEG_COM_IN_HAND
+PEG_TCP_IN_HAND = panda_spec.PEG_TCP_IN_HAND
+peg_inertia = panda_spec.peg_inertia
 
-
-def peg_inertia() -> np.ndarray:
-    """Rotational inertia (3x3, kg m^2) of the solid peg about its centre of mass, hand axes."""
-    m, r, h = PEG_MASS, PEG_RADIUS, PEG_LENGTH
-    ixx = m * (3.0 * r**2 + h**2) / 12.0
-    return np.diag([ixx, ixx, 0.5 * m * r**2])
-
-
-@dataclass(frozen=True)
-class HeldPart:
-    """Names and hand-frame geometry of the part the hand holds."""
-
-    kind: str  # "gear" or "peg"
-    body: str  # MuJoCo body name
-    tcp_site: str  # MuJoCo site name at the part's leading face
-    tcp_in_hand: np.ndarray  # TCP position in the panda_hand frame
-    mass: float
-    com_in_hand: np.ndarray
-    inertia: np.ndarray  # 3x3 about the COM, hand axes
-
-
-GEAR = HeldPart(
-    "gear",
-    "gear",
-    panda_spec.TCP_FRAME,
-    panda_spec.TCP_IN_HAND,
-    panda_spec.GEAR_MASS,
-    panda_spec.GEAR_COM_IN_HAND,
-    panda_spec.gear_inertia(),
-)
-PEG = HeldPart("peg", "peg", "peg_tcp", PEG_TCP_IN_HAND, PEG_MASS, PEG_COM_IN_HAND, peg_inertia())
+HeldPart = panda_spec.HeldPartInertia  # names and hand-frame geometry of the part the hand holds
+GEAR = panda_spec.GEAR_PART
+PEG = panda_spec.PEG_PART
 
 
 def _solid_geom(body: mujoco.MjsBody, name: str, rgba: np.ndarray) -> mujoco.MjsGeom:
