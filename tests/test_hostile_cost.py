@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -123,13 +124,14 @@ def flow_step_times(sizes: list[tuple[int, int]], calls: int = 3000) -> list[dic
         ctrl = FlowController(arm, FlowEvaluator.from_params(_policy(arm, arch)))
         for i in range(100):
             ctrl.step(qs[i % 512], dqs[i % 512])
-        samples = np.empty(calls)
+        wall, cpu = np.empty(calls), np.empty(calls)
         for i in range(calls):
-            t0 = time.perf_counter_ns()
+            t0, c0 = time.perf_counter_ns(), time.thread_time_ns()
             ctrl.step(qs[i % 512], dqs[i % 512])
-            samples[i] = (time.perf_counter_ns() - t0) / 1e3
+            cpu[i], wall[i] = (time.thread_time_ns() - c0) / 1e3, (time.perf_counter_ns() - t0) / 1e3
         rows.append({"n_flow": n_flow, "n_hidden": n_hidden, "n_params": arch.n_params,
-                     "median_us": float(np.median(samples)), "p99_us": float(np.percentile(samples, 99))})
+                     "median_us": float(np.median(wall)), "p99_us": float(np.percentile(wall, 99)),
+                     "cpu_median_us": float(np.median(cpu)), "cpu_p99_us": float(np.percentile(cpu, 99))})
     return rows
 
 
@@ -159,10 +161,11 @@ def main(argv: list[str] | None = None) -> int:
     for name, us in bridge_costs(args.calls).items():
         print(f"  {name:36s} {us:8.2f}")
     if args.sizes:
-        print("compiled controller step per flow size (3000 calls):")
+        print(f"compiled controller step per flow size ({3000} calls; load average {os.getloadavg()[0]:.1f}):")
         for row in flow_step_times([(2, 16), (4, 32), (2, 64), (4, 64), (8, 64), (4, 128), (8, 128)]):
             print(f"  n_flow={row['n_flow']:2d} n_hidden={row['n_hidden']:4d} weights={row['n_params']:7d}  "
-                  f"median {row['median_us']:8.1f} us  p99 {row['p99_us']:8.1f} us")
+                  f"wall median {row['median_us']:7.1f} p99 {row['p99_us']:7.1f} us; thread CPU median "
+                  f"{row['cpu_median_us']:7.1f} p99 {row['cpu_p99_us']:7.1f} us")
     return 0
 
 

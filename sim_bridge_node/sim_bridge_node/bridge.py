@@ -123,7 +123,7 @@ class SimBridge:
         if arr.size != n:
             return ("size", arr.size)
         if not np.isfinite(arr).all():
-            return ("finite", arr.copy())
+            return ("finite", arr)  # no copy: a message's data is not reused after its callback
         return arr
 
     def _error_text(self, error: tuple) -> str:
