@@ -57,7 +57,10 @@ else
 fi
 
 # 3. colcon build of the workspace when any package source changed.
-SRC_HASH=$( (find msgs nf_controller_node learner_node sim_bridge_node -type f \
+# Every package linked in ros2_ws/src is built; its folder is the link's target.
+PKG_DIRS=$(for link in ros2_ws/src/*; do realpath --relative-to=. "$link"; done)
+PY_PKGS=$(for link in ros2_ws/src/*; do [ -f "$link/setup.py" ] && basename "$link"; done)
+SRC_HASH=$( (find $PKG_DIRS -type f \
   \( -name '*.py' -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -name '*.xml' \
      -o -name '*.txt' -o -name '*.cfg' -o -name 'setup.py' -o -path '*/resource/*' -o -name '*.yaml' \) \
   -not -path '*/__pycache__/*' | LC_ALL=C sort | xargs sha256sum; ls -l ros2_ws/src) | sha256sum | cut -d' ' -f1)
@@ -84,7 +87,7 @@ export AMENT_PREFIX_PATH="$VENV\${AMENT_PREFIX_PATH:+:\$AMENT_PREFIX_PATH}"
 source "$ROOT/ros2_ws/install/setup.bash"
 export PYTHONPATH="$ROOT/bags\${PYTHONPATH:+:\$PYTHONPATH}"  # nf_bags (plain Python, not a colcon package)
 # console scripts (train, nf_report, run_stack, render_scene, controller_bench, ...) live in lib/<package>
-export PATH="$ROOT/ros2_ws/install/learner_node/lib/learner_node:$ROOT/ros2_ws/install/nf_controller_node/lib/nf_controller_node:$ROOT/ros2_ws/install/sim_bridge_node/lib/sim_bridge_node:\$PATH"
+export PATH="$(for pkg in $PY_PKGS; do printf '%s:' "$ROOT/ros2_ws/install/$pkg/lib/$pkg"; done)\$PATH"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export MUJOCO_GL=osmesa PYOPENGL_PLATFORM=osmesa
 ENV

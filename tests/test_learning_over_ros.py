@@ -1,6 +1,7 @@
-"""The whole stack as separate processes over real DDS: PPO iterations through the run_episode
-action and the streamed rollouts (equal to the in-process trainer), a learner killed mid-iteration
-and resumed from its checkpoint, and the controller unchanged against a hardware-like driver."""
+"""The whole stack over real DDS: PPO iterations through the run_episode action and the streamed
+rollouts (equal to the in-process trainer) with the sim and the controller composed in one process
+(``nf_sim_stack``) and as two processes, a learner killed mid-iteration and resumed from its
+checkpoint, and the controller unchanged against a hardware-like driver."""
 
 from __future__ import annotations
 
@@ -31,12 +32,25 @@ CONFIG = str(REPO / "config" / "gear.yaml")
 SHORT = {"episode_seconds": 0.5, "rollouts_per_iter": 3, "eval_episodes": 0}
 
 
-def stack(domain: int, tmp: Path, idle_mode: str) -> tuple[RosProcess, RosProcess]:
+def stack(domain: int, tmp: Path, idle_mode: str, composed: bool = True) -> list[RosProcess]:
+    """The arm and its controller: one composed process, or the sim and the controller apart."""
+    ctl_args = ["-p", f"nf_controller:idle_mode:={idle_mode}", "-p", "nf_controller:max_consecutive_misses:=0"]
+    if composed:
+        return [RosProcess(["-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", CONFIG, *ctl_args],
+                           domain, tmp / "composed.log")]
     sim = RosProcess(["-m", "sim_bridge_node.node", "--ros-args", "--params-file", CONFIG], domain, tmp / "sim.log")
-    ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "--params-file", CONFIG,
-                      "-p", f"nf_controller:idle_mode:={idle_mode}", "-p", "nf_controller:max_consecutive_misses:=0"],
+    ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "--params-file", CONFIG, *ctl_args],
                      domain, tmp / "controller.log")
-    return sim, ctl
+    return [sim, ctl]
+
+
+def logs(procs: list[RosProcess]) -> str:
+    return "\n".join(p.log() for p in procs)
+
+
+def stop(procs: list[RosProcess]) -> None:
+    for p in reversed(procs):
+        p.stop()
 
 
 def learner(domain: int, out: Path, log: Path, iterations: int, settings: dict) -> RosProcess:
@@ -68,16 +82,16 @@ def assert_same_learning(over_ros: list[dict], in_process: list[dict]) -> None:
             assert a[key] == pytest.approx(b[key], rel=1e-6, abs=1e-9), (key, a["iteration"])
 
 
-def test_two_ppo_iterations_over_ros_equal_the_in_process_trainer(tmp_path):
+@pytest.mark.parametrize("composed", [True, False], ids=["composed", "two_processes"])
+def test_two_ppo_iterations_over_ros_equal_the_in_process_trainer(tmp_path, composed):
     domain = allocate_domain_id()
-    sim, ctl = stack(domain, tmp_path, "pause")
+    arm = stack(domain, tmp_path, "pause", composed)
     try:
         lrn = learner(domain, tmp_path / "run", tmp_path / "learner.log", 2, SHORT)
         code = wait_exit(lrn, 240)
-        assert code == 0, lrn.log() + ctl.log()
+        assert code == 0, lrn.log() + logs(arm)
     finally:
-        ctl.stop()
-        sim.stop()
+        stop(arm)
     over_ros = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert all(r["dropped_episodes"] == 0 for r in over_ros)
     assert_same_learning(over_ros, in_process_history(2, SHORT))
@@ -89,7 +103,7 @@ def test_learner_killed_mid_iteration_holds_the_arm_and_resumes_without_losing_a
     probe = Probe(domain)
     status = probe.collect(ControllerStatus, "controller_status", RELIABLE)
     states = probe.collect(JointState, "joint_states", RELIABLE, convert=lambda m: np.array(m.velocity))
-    sim, ctl = stack(domain, tmp_path, "hold")
+    arm = stack(domain, tmp_path, "hold")
     run = tmp_path / "run"
     try:
         first = learner(domain, run, tmp_path / "learner1.log", 3, settings)
@@ -101,7 +115,7 @@ def test_learner_killed_mid_iteration_holds_the_arm_and_resumes_without_losing_a
         first.proc.send_signal(signal.SIGKILL)
         first.proc.wait(10)
         # the running episode ends (0.5 s simulated) and the arm is held: velocities die out
-        assert probe.spin_until(lambda: status[-1][1].mode == MODE_IDLE, 30), ctl.log()
+        assert probe.spin_until(lambda: status[-1][1].mode == MODE_IDLE, 30), logs(arm)
         # lockstep: simulated time passes only as fast as this (possibly busy) machine runs the loop
         assert probe.spin_until(lambda: np.abs(states[-1][1]).max() < 1e-2, 30), states[-1][1]
         assert status[-1][1].mode == MODE_IDLE and not status[-1][1].fault
@@ -110,8 +124,7 @@ def test_learner_killed_mid_iteration_holds_the_arm_and_resumes_without_losing_a
         assert wait_exit(second, 300) == 0, second.log()
         assert "resuming from" in second.log() and "after iteration 1" in second.log()
     finally:
-        ctl.stop()
-        sim.stop()
+        stop(arm)
         probe.close()
     over_ros = json.loads(metrics.read_text())
     assert_same_learning(over_ros, in_process_history(3, settings))

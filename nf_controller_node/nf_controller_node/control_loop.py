@@ -413,7 +413,7 @@ class ControlLoop:
         try:
             q, dq = self.joints.map(names, position, velocity)
         except JointStateError as exc:
-            return self._reject(("names", exc))
+            return self._reject(("names", str(exc)))
         if stamp_ns < self._last_stamp:
             return self._reject(("order", stamp_ns, self._last_stamp))
         problem = state_problem(q, dq, self.q_min, self.q_max, self.dq_max)

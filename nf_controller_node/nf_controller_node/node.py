@@ -19,11 +19,12 @@ from __future__ import annotations
 
 import array
 import itertools
-import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future as ConcurrentFuture
 
 import numpy as np
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nf_msgs.action import RunEpisode
 from nf_msgs.msg import ControllerStatus, RolloutChunk, TaskStatus
@@ -39,7 +40,8 @@ from std_srvs.srv import Trigger
 
 from .arm_model import ArmModel
 from .control_loop import MODE_IDLE, MODE_RESETTING, MODE_RUNNING, MODE_SAFE_HOLD, ControlLoop, LoopConfig
-from .episode import Chunk, EpisodeRun, EpisodeSpec
+from .episode import Chunk, EpisodeRun, EpisodeSpec, check_goal_duration
+from .host import CHUNK, EPISODE_END, FAULT, ControllerHost, EpisodeDriver, success_of
 from .panda_spec import GEAR_PART
 from .policy_params import PolicyParameterError, PolicyParameters
 from .reward import RewardWeights
@@ -79,6 +81,7 @@ PARAMETERS = {
     "episode_seconds": (5.0, "default episode length when a goal asks for 0 s"),
     "chunk_decisions": (100, "decisions per streamed rollout chunk"),
     "policy_wait": (10.0, "s an episode waits for the policy version it asks for"),
+    "reset_timeout": (60.0, "composed: s the driver may take to reset the world (a robot moves there)"),
     "reward_w": (1.0, "reward: weight of |d|^2"),
     "reward_v": (2.0, "reward: weight of ln((|d|^2 + a) / a)"),
     "reward_a": (1.0e-5, "reward: offset a, m^2"),
@@ -99,7 +102,26 @@ class _Attrs:
         self.__dict__.update(d)
 
 
-def _loop_from(p: dict) -> ControlLoop:
+DRAIN_PERIOD = 0.002  # s, composed: how often the ticks' chunks, episode ends and faults are taken
+MAX_FAULT_TEXT = 300  # characters of a fault reason in status, diagnostics and logs
+BASE_FRAME = "panda_link0"
+
+
+def _stamp(ns: int) -> Time:
+    sec, nanosec = divmod(int(ns), 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def _goal_problem(goal: RunEpisode.Goal) -> str:
+    """Why an episode goal cannot run ("" if it can). A duration of 0 means the default length."""
+    try:
+        check_goal_duration(goal.duration, 1.0)
+    except ValueError as exc:
+        return str(exc)
+    return ""
+
+
+def _loop_from(p: dict, arm: ArmModel | None = None, joint_names: Sequence[str] | None = None) -> ControlLoop:
     if p["held_part"] not in ("gear", "none"):
         raise ValueError(f"held_part must be 'gear' or 'none', got {p['held_part']!r}")
     for name in ("status_rate", "diagnostics_period"):
@@ -112,34 +134,58 @@ def _loop_from(p: dict) -> ControlLoop:
     if not p["chunk_decisions"] >= 1:
         raise ValueError(f"chunk_decisions must be >= 1, got {p['chunk_decisions']}")
     RewardWeights.from_config(_Attrs(p)).check()
-    arm = ArmModel(part=GEAR_PART if p["held_part"] == "gear" else None)
-    return ControlLoop(arm, law, config)
+    if arm is None:
+        arm = ArmModel(part=GEAR_PART if p["held_part"] == "gear" else None)
+    if joint_names is None:
+        return ControlLoop(arm, law, config)
+    return ControlLoop(arm, law, config, joint_names=joint_names)
 
 
 class NFControllerNode(Node):
-    """Wires a ``ControlLoop`` to the arm's topics; see the module docstring."""
+    """Wires a ``ControlLoop`` (behind a ``ControllerHost``) to ROS; see the module docstring.
 
-    def __init__(self, state_qos: QoSProfile = STATE_QOS, policy_qos: QoSProfile = POLICY_QOS) -> None:
-        super().__init__("nf_controller")
+    Standalone (default): the node is its own driver, answering every ``joint_states`` message with
+    one ``effort_controller/commands`` message. ``composed=True``: a driver in the same process
+    ticks ``self.host`` directly and is attached with ``attach_driver``; the node keeps the slow
+    side (policy, episodes, rollouts, status, diagnostics, clear_fault). ``arm`` and
+    ``joint_names`` let a driver give the model and joint names of the robot it is connected to.
+    """
+
+    def __init__(self, state_qos: QoSProfile = STATE_QOS, policy_qos: QoSProfile = POLICY_QOS, *,
+                 composed: bool = False, arm: ArmModel | None = None,
+                 joint_names: Sequence[str] | None = None, name: str = "nf_controller") -> None:
+        super().__init__(name)
         p = declare_read_only(self, PARAMETERS)
         self.params = p
-        self.loop = _loop_from(p)
-        self._dim = MultiArrayDimension(label="", size=7, stride=7)
-        self._cmd = Float64MultiArray()
-        self._cmd.layout.dim = [self._dim]
-        self._cmd_pub = self.create_publisher(Float64MultiArray, COMMANDS, PUBLISH_QOS)
+        self.composed = composed
+        self.loop = _loop_from(p, arm, joint_names)
+        self.host = ControllerHost(self.loop)
+        self._driver: EpisodeDriver | None = None
         self._status_pub = self.create_publisher(ControllerStatus, CONTROLLER_STATUS, state_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS, state_qos)
-        self.create_subscription(JointState, JOINT_STATES, self._on_joint_state, state_qos)
         self.create_subscription(PolicyParametersMsg, POLICY_PARAMETERS, self._on_policy, policy_qos)
         self.create_service(Trigger, "~/clear_fault", self._on_clear_fault)
-        self.create_subscription(TaskStatus, TASK_STATUS, self._on_task_status, state_qos)
         self._chunk_pub = self.create_publisher(RolloutChunk, ROLLOUTS, QoSProfile(
             depth=100, reliability=ReliabilityPolicy.RELIABLE))
-        self._reset_client = self.create_client(ResetSim, p["reset_service"]) if p["reset_service"] else None
+        self._reset_client = None
+        if composed:
+            self.create_timer(DRAIN_PERIOD, self._drain)
+        else:
+            self._dim = MultiArrayDimension(label="", size=self.loop.n, stride=self.loop.n)
+            self._cmd = Float64MultiArray()
+            self._cmd.layout.dim = [self._dim]
+            self._cmd_pub = self.create_publisher(Float64MultiArray, COMMANDS, PUBLISH_QOS)
+            self.create_subscription(JointState, JOINT_STATES, self._on_joint_state, state_qos)
+            self.create_subscription(TaskStatus, TASK_STATUS, self._on_task_status, state_qos)
+            if p["reset_service"]:
+                self._reset_client = self.create_client(ResetSim, p["reset_service"])
+            if p["state_timeout"] > 0.0:
+                self.create_timer(max(p["state_timeout"] / 4.0, 0.001), self._on_watchdog)
         self._weights = RewardWeights.from_config(_Attrs(p))
         self._episode_ids = itertools.count(int(time.time() * 1000) * 1000)  # unique across restarts
         self._episode_done: Future | None = None
+        self._episode_run: EpisodeRun | None = None
+        self._final_x: np.ndarray | None = None
         self._goal = None
         self._resetting = False
         self._unanswered: JointState | None = None  # the last state left unanswered (see _release_states)
@@ -148,38 +194,42 @@ class NFControllerNode(Node):
         self.create_timer(0.2, self._publish_feedback)
         self.create_timer(1.0 / p["status_rate"], self._publish_status)
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
-        if p["state_timeout"] > 0.0:
-            self.create_timer(max(p["state_timeout"] / 4.0, 0.001), self._on_watchdog)
-        self._stamp = None
-        self._task_success = False
-        self._tau_norm = 0.0
-        self._bad_logged = 0
+        self._sample = (float("nan"), float("nan"), None)  # V (J), dV/dt (W), TCP x (m) at the last state
+        self._sample_future: ConcurrentFuture | None = None
         self.get_logger().info(
-            f"flow controller up: gravity compensation {'on' if p['gravity_compensation'] else 'off (driver)'}, "
-            f"joints {list(self.loop.joints.joint_names)}; holding until policy parameters arrive")
+            f"flow controller up ({'composed with its driver' if composed else 'standalone, over topics'}): "
+            f"gravity compensation {'on' if p['gravity_compensation'] else 'off (driver)'}, "
+            f"held part {p['held_part']}, joints {list(self.loop.joints.joint_names)}; "
+            f"holding until policy parameters arrive")
 
-    # ------------------------------------------------------------------ the 1 kHz path
+    def attach_driver(self, driver: EpisodeDriver) -> None:
+        """Composed use: the driver that ticks ``self.host`` and resets its world for episodes."""
+        self._driver = driver
+
+    def _on_driver_thread(self, fn: Callable[[], object]) -> ConcurrentFuture:
+        """Run ``fn`` where the ticks run: through the host when composed, here and now when standalone."""
+        if self.composed:
+            return self.host.call(fn)
+        future: ConcurrentFuture = ConcurrentFuture()
+        try:
+            future.set_result(fn())
+        except Exception as exc:
+            future.set_exception(exc)
+        return future
+
+    # ------------------------------------------------------------------ standalone: the 1 kHz path
     def _on_joint_state(self, msg: JointState) -> None:
-        t0 = time.perf_counter()
         stamp = msg.header.stamp
         stamp_ns = stamp.sec * 1_000_000_000 + stamp.nanosec
-        loop = self.loop
+        host, loop = self.host, self.loop
+        host.service()
         if not loop.answers(stamp_ns):
             self._unanswered = msg  # answered when the episode starts, if it is the reset state
             return
-        tau, new_fault = loop.on_joint_state(msg.name, msg.position, msg.velocity, stamp_ns, time.monotonic())
+        tau = host.tick(stamp_ns, msg.position, msg.velocity, time.monotonic(), names=msg.name)
         self._dim.label = stamp_label(stamp_ns)  # lockstep handshake
         self._publish_command(tau)
-        self._stamp = stamp
-        missed = loop.record_latency(time.perf_counter() - t0)
-        if loop.episode is not None:
-            self._episode_progress(loop.episode, new_fault or missed)
-        if new_fault or missed:
-            self.get_logger().error(f"safe hold: {new_fault or missed}")
-        elif self.loop.bad_inputs != self._bad_logged:
-            self.get_logger().error(f"bad joint state rejected ({self.loop.bad_inputs} so far); holding: "
-                                    f"{self.loop.fault}", throttle_duration_sec=1.0)
-        self._bad_logged = self.loop.bad_inputs
+        self._drain()
 
     def _release_states(self) -> None:
         """End a reset: answer states again, first the one that came in meanwhile. Without this
@@ -189,13 +239,12 @@ class NFControllerNode(Node):
         lockstep sim its resend wait."""
         self.loop.resetting = False
         held, self._unanswered = self._unanswered, None
-        if held is not None:
+        if held is not None and not self.composed:
             self._on_joint_state(held)
 
     def _publish_command(self, tau: np.ndarray) -> None:
         self._cmd.data = array.array("d", tau.tobytes())
         self._cmd_pub.publish(self._cmd)
-        self._tau_norm = float(np.linalg.norm(tau))
 
     def _on_watchdog(self) -> None:
         tau, new_fault = self.loop.on_timer(time.monotonic())
@@ -205,50 +254,72 @@ class NFControllerNode(Node):
         if new_fault:
             self.get_logger().error(f"safe hold: {new_fault}")
 
-    # ------------------------------------------------------------------ episodes
-    def _episode_progress(self, run: EpisodeRun, fault: str) -> None:
-        """After each answered state of an episode: stream finished chunks, end on done or fault."""
-        for chunk in run.ready_chunks():
-            self._publish_chunk(run, chunk)
-        if fault or self.loop.fault:
-            self._finish_episode(f"aborted: safe hold ({fault or self.loop.fault})")
-        elif run.done:
-            self._finish_episode("")
+    def _on_task_status(self, msg: TaskStatus) -> None:
+        self.loop.on_task_status(msg.insertion_depth, msg.success)  # checked; rejections are counted
 
-    def _finish_episode(self, problem: str) -> None:
-        self.loop.end_episode()
-        if self._episode_done is not None and not self._episode_done.done():
-            self._episode_done.set_result(problem)
+    # ------------------------------------------------------------------ what the ticks produced
+    def _drain(self) -> None:
+        """Publish the chunks, episode ends and faults the ticks produced (after each tick when
+        standalone, from a timer when composed)."""
+        for event in self.host.drain():
+            if event.kind == CHUNK:
+                self._publish_chunk(event.run, event.chunk, event.stamp_ns)
+            elif event.kind == EPISODE_END:
+                if event.run is self._episode_run:
+                    self._final_x = event.x
+                    if self._episode_done is not None and not self._episode_done.done():
+                        self._episode_done.set_result(event.text)
+            elif event.kind == FAULT:
+                self.get_logger().error(f"safe hold: {event.text}")
 
-    def _publish_chunk(self, run: EpisodeRun, chunk: Chunk) -> None:
+    def _publish_chunk(self, run: EpisodeRun, chunk: Chunk, stamp_ns: int) -> None:
         spec = run.spec
         msg = RolloutChunk(episode_id=spec.episode_id, seq=chunk.seq, final=chunk.final, n_chunks=chunk.n_chunks,
                            policy_version=spec.policy_version, dim=run.d)
-        if self._stamp is not None:
-            msg.header.stamp = self._stamp
-        msg.header.frame_id = "panda_link0"
+        msg.header.stamp = _stamp(stamp_ns)
+        msg.header.frame_id = BASE_FRAME
         for name in ("t", "x", "xdot", "u_mean", "action", "log_prob", "reward"):
             setattr(msg, name, array.array("d", np.ascontiguousarray(getattr(chunk, name)).tobytes()))
         msg.reward_terms = array.array("d", np.ascontiguousarray(chunk.terms).tobytes())
         msg.insertion_depth = array.array("d", chunk.depth.tobytes())
         self._chunk_pub.publish(msg)
 
+    # ------------------------------------------------------------------ episodes
     def _on_goal(self, goal: RunEpisode.Goal) -> GoalResponse:
         if self._goal is not None:
             self.get_logger().error("episode goal rejected: another episode is running")
             return GoalResponse.REJECT
+        problem = _goal_problem(goal)
+        if problem:
+            self.get_logger().error(f"episode goal rejected: {problem}")
+            return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
     def _on_cancel(self, goal_handle: object) -> CancelResponse:
-        self._finish_episode("canceled")
+        self._end_episode_now("canceled")
         return CancelResponse.ACCEPT
+
+    def _end_episode_now(self, problem: str) -> None:
+        """End the running episode from the slow side (cancel, failure): on the driver thread."""
+        run = self._episode_run
+        if run is None:
+            return
+
+        def end() -> None:
+            if self.loop.episode is run:
+                self.host.end_episode(problem)
+
+        self._on_driver_thread(end)
+        if not self.composed:
+            self._drain()
+        if self._episode_done is not None and not self._episode_done.done():
+            self._episode_done.set_result(problem)
 
     def _publish_feedback(self) -> None:
         run, gh = self.loop.episode, self._goal
         if run is None or gh is None:
             return
-        value, _ = self.loop.lyapunov()
-        gh.publish_feedback(RunEpisode.Feedback(t=run.t, lyapunov=value, insertion_depth=self.loop.depth,
+        gh.publish_feedback(RunEpisode.Feedback(t=run.t, lyapunov=self._sample[0], insertion_depth=self.host.depth,
                                                 chunks_sent=run.chunks_sent))
 
     def _sleep(self, seconds: float) -> Future:
@@ -263,13 +334,20 @@ class NFControllerNode(Node):
         timer = self.create_timer(seconds, fire)
         return future
 
-    async def _wait_until(self, predicate: Callable[[], bool], timeout: float) -> bool:
+    async def _wait_until(self, predicate: Callable[[], bool], timeout: float, poll: float = 0.01) -> bool:
         deadline = time.monotonic() + timeout
         while not predicate():
             if time.monotonic() > deadline:
                 return False
-            await self._sleep(0.01)
+            await self._sleep(poll)
         return True
+
+    async def _result_of(self, future: ConcurrentFuture, timeout: float) -> object:
+        """Await a driver-thread future from the action's coroutine (polled every millisecond)."""
+        if not await self._wait_until(future.done, timeout, poll=0.001):
+            future.cancel()
+            raise TimeoutError(f"the driver did not run the request within {timeout:.0f} s")
+        return future.result()
 
     async def _execute(self, gh: object) -> RunEpisode.Result:
         self._goal = gh
@@ -277,10 +355,11 @@ class NFControllerNode(Node):
             result = await self._run_episode(gh.request)
         except Exception as exc:  # never leave an episode half-open: log, end it, report
             self.get_logger().error(f"episode failed: {exc!r}")
-            self._finish_episode(f"aborted: {exc}")
+            self._end_episode_now(f"aborted: {exc}")
             result = RunEpisode.Result(completed=False, message=f"episode failed: {exc}")
         finally:
             self._goal = None
+            self._episode_run = None
             self._resetting = False
             self._release_states()  # a failed reset must not leave the states unanswered
         if result.completed:
@@ -295,28 +374,15 @@ class NFControllerNode(Node):
     async def _run_episode(self, goal: RunEpisode.Goal) -> RunEpisode.Result:
         p, loop = self.params, self.loop
         result = RunEpisode.Result(completed=False)
-        duration = goal.duration if goal.duration > 0.0 else p["episode_seconds"]
+        duration = check_goal_duration(goal.duration, p["episode_seconds"])  # checked when accepted
         if not await self._wait_until(lambda: loop.policy_version == goal.policy_version and loop.policy is not None,
                                       p["policy_wait"]):
             result.message = (f"controller has policy version {loop.policy_version}, the episode asks for "
                               f"{goal.policy_version} (waited {p['policy_wait']:.0f} s)")
             return result
         if loop.fault:
-            result.message = f"safe hold: {loop.fault} (call nf_controller/clear_fault)"
+            result.message = f"safe hold: {loop.fault} (call {self.get_name()}/clear_fault)"
             return result
-        first_stamp = 0
-        if self._reset_client is not None:
-            self._resetting = True
-            loop.resetting = True  # answer no state until the episode starts (see _release_states)
-            if not await self._wait_until(self._reset_client.service_is_ready, 5.0):
-                result.message = f"reset service {p['reset_service']} not available"
-                return result
-            response = await self._reset_client.call_async(ResetSim.Request(seed=int(goal.seed)))
-            self._resetting = False
-            if not response.success:
-                result.message = f"reset failed: {response.message}"
-                return result
-            first_stamp = int(response.stamp_ns)
         params = loop.policy
         sigma = None
         if not goal.deterministic:
@@ -327,86 +393,161 @@ class NFControllerNode(Node):
                            noise_seed=int(noise_seed) & 0x7FFFFFFFFFFFFFFF, x_goal=params.x_ref.copy(),
                            weights=self._weights, chunk_decisions=p["chunk_decisions"])
         run = EpisodeRun(spec)
+        self._episode_run = run
+        self._final_x = None
         self._episode_done = Future()
-        loop.depth = float("nan")
-        loop.start_episode(run, first_stamp)
-        self._release_states()
+        if self.composed:
+            problem = await self._begin_composed(run, int(goal.seed))
+        else:
+            problem = await self._begin_standalone(run, int(goal.seed))
+        if problem:
+            result.message = problem
+            return result
         problem = await self._episode_done
         result.episode_id = spec.episode_id
         result.n_chunks = run.chunks_sent
         result.episode_return = run.episode_return
-        result.insertion_depth = float(self.loop.depth)
-        result.success = bool(self._task_success) if math.isfinite(self.loop.depth) else False
+        result.insertion_depth = float(self.host.depth)
+        result.success = success_of(self.host.depth, self.host.success)
         if run.closed:
             result.final_distance = float(np.linalg.norm(run.x[run.closed - 1] - spec.x_goal))
-        if run.done and self.loop.have_state:
-            result.final_distance = float(np.linalg.norm(self.loop.controller.arm.x - spec.x_goal))
+        if run.done and self._final_x is not None:
+            result.final_distance = float(np.linalg.norm(self._final_x - spec.x_goal))
         result.torque_norm = run.mean_torque
         result.completed = not problem
         result.message = problem or f"{run.K} decisions, {run.chunks_sent} chunks"
         return result
 
-    def _on_task_status(self, msg: TaskStatus) -> None:
-        self.loop.depth = float(msg.insertion_depth)
-        self._task_success = bool(msg.success)
+    async def _begin_composed(self, run: EpisodeRun, seed: int) -> str:
+        """Composed: the driver resets its world (sim: at once; robot: a motion) and starts ``run`` at
+        the first state after it, on its own thread. Returns a problem, or "" once it runs."""
+        if self._driver is None:
+            return "no driver attached to the composed controller"
+        self._resetting = True
+        self.host.set_task(float("nan"), False)
+        try:
+            await self._result_of(self._driver.begin_episode(seed, run), self.params["reset_timeout"])
+        except Exception as exc:
+            return f"reset failed: {exc}"
+        finally:
+            self._resetting = False
+        return ""
+
+    async def _begin_standalone(self, run: EpisodeRun, seed: int) -> str:
+        """Standalone: reset the world through its service (if any), then start ``run`` at the state
+        stamped with the reset's stamp (no state is answered in between)."""
+        p, loop = self.params, self.loop
+        first_stamp = 0
+        if self._reset_client is not None:
+            self._resetting = True
+            loop.resetting = True  # answer no state until the episode starts (see _release_states)
+            if not await self._wait_until(self._reset_client.service_is_ready, 5.0):
+                return f"reset service {p['reset_service']} not available"
+            response = await self._reset_client.call_async(ResetSim.Request(seed=seed))
+            self._resetting = False
+            if not response.success:
+                return f"reset failed: {response.message}"
+            first_stamp = int(response.stamp_ns)
+        self.host.set_task(float("nan"), False)
+        self.host.start_episode(run, first_stamp, world_was_reset=self._reset_client is not None)
+        self._release_states()
+        return ""
 
     # ------------------------------------------------------------------ policy and faults
     def _on_policy(self, msg: PolicyParametersMsg) -> None:
-        old = self.loop.policy_version
+        loop = self.loop
+        old = loop.policy_version
         try:
             params = PolicyParameters.from_msg(msg)
-            now = self.loop.set_policy(params)
+            evaluator = loop.prepare_policy(params)  # the slow part, here on the executor thread
         except PolicyParameterError as exc:
-            self.loop.policy_rejections += 1
+            loop.policy_rejections += 1
             self.get_logger().error(f"rejected policy parameters version {msg.version}: {exc} "
                                     f"(keeping version {old})")
             return
+        future = self._on_driver_thread(lambda: loop.set_policy(params, evaluator))
         a = params.arch
-        self.get_logger().info(
-            f"policy version {params.version} {'installed' if now else 'queued until the episode ends'}: "
-            f"n_flow={a.n_flow}, n_hidden={a.n_hidden}, {a.activation}, x_ref={params.x_ref.tolist()}")
+        what = f"n_flow={a.n_flow}, n_hidden={a.n_hidden}, {a.activation}, x_ref={params.x_ref.tolist()}"
+
+        def report(f: ConcurrentFuture) -> None:
+            try:
+                now = f.result()
+            except Exception as exc:  # PolicyParameterError from checks against the installed policy
+                loop.policy_rejections += 1
+                self.get_logger().error(f"rejected policy parameters version {params.version}: {exc}")
+                return
+            self.get_logger().info(f"policy version {params.version} "
+                                   f"{'installed' if now else 'queued until the episode ends'}: {what}")
+
+        future.add_done_callback(report)
 
     def _on_clear_fault(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        old = self.loop.clear_fault()
+        old = self.loop.fault if self.loop.controller.fault else ""
+        self._on_driver_thread(self.loop.clear_fault)
         response.success = True
         response.message = f"cleared: {old}" if old else "no fault latched"
         self.get_logger().info(response.message)
         return response
 
     # ------------------------------------------------------------------ reporting
-    def _publish_status(self) -> None:
+    def _take_sample(self) -> tuple[float, float, np.ndarray | None]:
+        """V, dV/dt and the TCP position at the last state: on the driver thread (they use the arm
+        model the ticks use)."""
         loop = self.loop
         value, rate = loop.lyapunov()
+        x = loop.controller.arm.tcp_position(loop.q) if loop.have_state else None
+        return value, rate, x
+
+    def _refresh_sample(self) -> None:
+        """Standalone: sample now. Composed: take the sample asked for last time, ask for the next."""
+        if not self.composed:
+            self._sample = self._take_sample()
+            return
+        f = self._sample_future
+        if f is not None and f.done():
+            if f.exception() is None:
+                self._sample = f.result()
+            f = None
+        if f is None:
+            self._sample_future = self.host.call(self._take_sample)
+
+    def _publish_status(self) -> None:
+        loop = self.loop
+        self._refresh_sample()
+        value, rate, x = self._sample
         mode = MODE_RESETTING if self._resetting and not loop.fault else loop.mode
-        msg = ControllerStatus(mode=mode, fault=loop.fault, policy_version=loop.policy_version,
-                               lyapunov=value, lyapunov_rate=rate, torque_norm=self._tau_norm,
+        msg = ControllerStatus(mode=mode, fault=loop.fault[:MAX_FAULT_TEXT], policy_version=loop.policy_version,
+                               lyapunov=value, lyapunov_rate=rate, torque_norm=float(np.linalg.norm(self.host.tau)),
                                deadline_misses=loop.deadline_misses)
-        if self._stamp is not None:
-            msg.header.stamp = self._stamp
-        msg.header.frame_id = "panda_link0"
-        if loop.have_state:
-            msg.x = loop.controller.arm.tcp_position(loop.q).tolist()
+        msg.header.stamp = _stamp(self.host.last_stamp_ns)
+        msg.header.frame_id = BASE_FRAME
+        if x is not None:
+            msg.x = x.tolist()
         if loop.policy is not None:
             msg.x_ref = loop.policy.x_ref.tolist()
         self._status_pub.publish(msg)
+        report = loop.take_rejection_report()  # rejections are counted per message, logged only here
+        if report:
+            self.get_logger().error(f"{report}; holding: {loop.fault[:MAX_FAULT_TEXT]}")
 
     def _publish_diagnostics(self) -> None:
         loop = self.loop
         lat = loop.latency.report()
-        status = DiagnosticStatus(name="nf_controller: control loop", hardware_id="panda")
+        status = DiagnosticStatus(name=f"{self.get_name()}: control loop", hardware_id="panda")
         mode = loop.mode
+        fault = loop.fault[:MAX_FAULT_TEXT]
         if mode == MODE_SAFE_HOLD:
             status.level = DiagnosticStatus.WARN if loop.policy is None else DiagnosticStatus.ERROR
-            status.message = f"safe hold: {loop.fault}"
+            status.message = f"safe hold: {fault}"
         else:
             status.level, status.message = DiagnosticStatus.OK, _MODE_NAMES[mode]
         values = {
-            "mode": _MODE_NAMES.get(mode, str(mode)), "fault": loop.fault, "policy_version": loop.policy_version,
-            "steps": loop.steps, "steps_in_window": lat["count"],
+            "mode": _MODE_NAMES.get(mode, str(mode)), "fault": fault, "policy_version": loop.policy_version,
+            "composed": self.composed, "steps": loop.steps, "steps_in_window": lat["count"],
             "latency_p50_us": f"{lat['p50_us']:.1f}", "latency_p90_us": f"{lat['p90_us']:.1f}",
             "latency_p99_us": f"{lat['p99_us']:.1f}", "latency_max_us": f"{lat['max_us']:.1f}",
             "deadline_misses": loop.deadline_misses, "faults": loop.faults, "bad_inputs": loop.bad_inputs,
-            "policy_rejections": loop.policy_rejections,
+            "policy_rejections": loop.policy_rejections, "task_status_rejected": loop.bad_task_status,
         }
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])

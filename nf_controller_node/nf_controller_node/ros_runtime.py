@@ -51,10 +51,16 @@ def declare_read_only(node: Node, spec: Mapping[str, tuple[Any, str]]) -> dict[s
     return values
 
 
-def run_node(make_node: Callable[[], Node], prog: str, description: str, argv: Sequence[str] | None = None,
+def run_node(make_node: Callable[[], Node | Sequence[Node]], prog: str, description: str,
+             argv: Sequence[str] | None = None,
              work: Callable[[Node, threading.Event], int] | None = None,
-             make_executor: Callable[[], Any] = EventsExecutor, epilog: str | None = None) -> int:
-    """Run one node until SIGINT/SIGTERM. Returns the exit code (2 when the node refused its parameters).
+             make_executor: Callable[[], Any] = EventsExecutor, epilog: str | None = None,
+             started: Callable[[list[Node]], None] | None = None) -> int:
+    """Run one node (or several composed in this process, one executor) until SIGINT/SIGTERM.
+    Returns the exit code (2 when a node refused its parameters).
+
+    ``started(nodes)`` runs once the executor holds them (a composed driver starts its thread
+    there); the nodes are destroyed in reverse order of creation.
 
     With ``work``, the executor spins in a background thread and ``work(node, stop)`` runs in the
     main thread; its return value is the exit code, and ``stop`` is set on a signal. If the node
@@ -67,16 +73,21 @@ def run_node(make_node: Callable[[], Node], prog: str, description: str, argv: S
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    node: Node | None = None
+    nodes: list[Node] = []
     executor = spinner = None
     try:
         try:
-            node = make_node()
+            made = make_node()
         except (ValueError, ParameterException) as exc:  # bad parameters: the node says which and why
             get_logger(prog).fatal(f"not starting: {exc}")
             return 2
+        nodes = list(made) if isinstance(made, Sequence) else [made]
+        node = nodes[0]
         executor = make_executor()
-        executor.add_node(node)
+        for n in nodes:
+            executor.add_node(n)
+        if started is not None:
+            started(nodes)
 
         lock = getattr(node, "spin_lock", None) or contextlib.nullcontext()
         slice_s = SPIN_SLICE if work is None else WORK_SPIN_SLICE
@@ -98,8 +109,8 @@ def run_node(make_node: Callable[[], Node], prog: str, description: str, argv: S
             spinner.join(timeout=2.0)
         if executor is not None:
             executor.shutdown()
-        if node is not None:
-            node.destroy_node()
+        for n in reversed(nodes):
+            n.destroy_node()
         rclpy.try_shutdown()
         for sig, handler in previous.items():
             signal.signal(sig, handler)

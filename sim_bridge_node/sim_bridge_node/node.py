@@ -15,6 +15,12 @@ Modes (parameter ``mode``):
   damping) and counts a command timeout, as a real arm's driver would. It also times each
   state-to-command round trip and counts deadline misses (``response_timing``); the numbers go
   to ``/diagnostics`` and, with ``response_log`` set, every latency to a file at shutdown.
+
+Composed (``SimBridgeNode(host=...)``, started by ``nf_sim_stack``): the controller runs in this
+process and the bridge calls it directly every step on a driver thread
+(``sim_bridge_node.composed``); the node still publishes ``joint_states``, ``clock``,
+``task_status``, ``/diagnostics`` and, for bags and re-simulation, the applied command on
+``effort_controller/commands`` (labelled with the state it answers), and serves ``~/reset``.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from __future__ import annotations
 import array
 import json
 import os
+import threading
 import time
 from pathlib import Path
 
@@ -34,12 +41,14 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from nf_controller_node import topics
+from nf_controller_node.host import ControllerHost
 from nf_controller_node.ros_runtime import declare_read_only, run_node
 from nf_controller_node.topics import parse_stamp_label
 from sim_bridge_node.bridge import ACCEPTED, BAD, STALE, BridgeConfig, SimBridge
+from sim_bridge_node.composed import SimDriverLoop, latencies_us
 from sim_bridge_node.env import InsertionEnv
 from sim_bridge_node.response_timing import ResponseTiming, latency_summary
 from sim_bridge_node.scenes import TASKS
@@ -91,7 +100,7 @@ def _check(p: dict) -> None:
 class SimBridgeNode(Node):
     """Wires a ``SimBridge`` to ros2_control-style topics; see the module docstring."""
 
-    def __init__(self, qos: QoSProfile = STATE_QOS) -> None:
+    def __init__(self, qos: QoSProfile = STATE_QOS, host: ControllerHost | None = None) -> None:
         super().__init__("sim_bridge")
         p = declare_read_only(self, PARAMETERS)
         _check(p)
@@ -114,18 +123,32 @@ class SimBridgeNode(Node):
         self._clock_pub = self.create_publisher(Clock, topics.CLOCK, PUBLISH_QOS) if self.lockstep else None
         self._task_pub = self.create_publisher(TaskStatus, topics.TASK_STATUS, PUBLISH_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
-        on_command = self._on_command_lockstep if self.lockstep else self._on_command_realtime
-        self.create_subscription(Float64MultiArray, topics.COMMANDS, on_command, qos)
         self.create_service(ResetSim, "~/reset", self._on_reset)
+        self.driver: SimDriverLoop | None = None
+        self._driver_thread: threading.Thread | None = None
+        self._driver_stop = threading.Event()
+        if host is not None:
+            self.driver = SimDriverLoop(self.bridge, host, realtime=not self.lockstep, after_step=self._after_step,
+                                        keep_timing=bool(p["response_log"]))
+            self._cmd = Float64MultiArray()
+            self._cmd_dim = MultiArrayDimension(label="", size=len(self._state.name), stride=len(self._state.name))
+            self._cmd.layout.dim = [self._cmd_dim]
+            self._cmd_pub = self.create_publisher(Float64MultiArray, topics.COMMANDS, PUBLISH_QOS)
+            self._host = host
+        else:
+            on_command = self._on_command_lockstep if self.lockstep else self._on_command_realtime
+            self.create_subscription(Float64MultiArray, topics.COMMANDS, on_command, qos)
 
         self.resends = 0
         self.late_ticks = 0
         self._last_publish = time.monotonic()
         self._last_tick = None
         self._window = (time.monotonic(), 0, 0.0)  # wall time, steps, sim time at the last report
-        self.timing = None if self.lockstep else ResponseTiming(keep_all=bool(p["response_log"]))
+        self.timing = None if self.lockstep or host is not None else ResponseTiming(keep_all=bool(p["response_log"]))
         self._answers: int | None = None  # stamp the last command said it answers (parsed once, in _accept)
-        if self.lockstep:
+        if host is not None:
+            pass  # the driver thread steps (start_driver)
+        elif self.lockstep:
             self.create_timer(p["lockstep_resend"] / 2.0, self._on_resend_check)
         else:
             self.create_timer(dt, self._on_tick)
@@ -133,8 +156,37 @@ class SimBridgeNode(Node):
         self._publish_state()
         self._publish_task_status()
         self.get_logger().info(
-            f"{p['task']} scene, {p['mode']} mode, driver gravity compensation "
+            f"{p['task']} scene, {p['mode']} mode{', composed with the controller' if host else ''}, "
+            f"driver gravity compensation "
             f"{'on' if config.driver_gravity_compensation else 'off'}, joints {self._state.name}")
+
+    # ------------------------------------------------------------------ composed: the driver thread
+    def start_driver(self) -> None:
+        """Composed: start stepping the world with the controller's torques on a driver thread."""
+        if self.driver is None or self._driver_thread is not None:
+            return
+        self._driver_thread = threading.Thread(target=self._drive, name="sim-driver", daemon=True)
+        self._driver_thread.start()
+
+    def _drive(self) -> None:
+        try:
+            self.driver.run(self._driver_stop)
+        except Exception as exc:  # the loop must not die silently: say why, the arm stops stepping
+            self.get_logger().fatal(f"driver loop stopped: {exc!r}")
+            raise
+
+    def stop_driver(self) -> None:
+        """Composed: stop the driver thread (joins it)."""
+        self._driver_stop.set()
+        if self._driver_thread is not None:
+            self._driver_thread.join(timeout=5.0)
+            self._driver_thread = None
+
+    def _publish_applied_command(self) -> None:
+        """Composed: the command applied in the last step, labelled with the state it answered."""
+        self._cmd_dim.label = topics.stamp_label(self._host.last_stamp_ns)
+        self._cmd.data = array.array("d", self._host.tau.tobytes())
+        self._cmd_pub.publish(self._cmd)
 
     # ------------------------------------------------------------------ commands and steps
     def _on_command_lockstep(self, msg: Float64MultiArray) -> None:
@@ -178,6 +230,8 @@ class SimBridgeNode(Node):
             self._publish_diagnostics()
 
     def _after_step(self) -> None:
+        if self.driver is not None:
+            self._publish_applied_command()
         self._publish_state()
         steps = self.bridge.steps
         if self._clock_pub is not None and steps % self._clock_every == 0:
@@ -240,16 +294,41 @@ class SimBridgeNode(Node):
             lat = latency_summary(self.timing.take_window())
             values.update({f"response_{k}": f"{v:.1f}" for k, v in lat.items()})
             values.update(self.timing.counters())
+        timing = self.driver.timing if self.driver is not None else None
+        if timing is not None:
+            lat = latencies_us(timing.take_window())
+            values.update({f"tick_{k}": f"{v:.1f}" for k, v in lat.items()})
+            values.update(timing.counters())
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self._diag_pub.publish(msg)
 
     def destroy_node(self) -> None:
-        """Write the response log (when asked for), then destroy the node."""
+        """Stop the driver thread (composed), write the response log (when asked for), then destroy the node."""
+        self.stop_driver()
         if self.timing is not None and self.timing.all is not None:
             self.write_response_log(Path(self.params["response_log"]))
+        if self.driver is not None and self.driver.timing is not None and self.params["response_log"]:
+            self.write_tick_log(Path(self.params["response_log"]))
         super().destroy_node()
+
+    def write_tick_log(self, path: Path) -> None:
+        """Composed realtime: every state-to-command latency (s) to ``path`` (.npy), every tick period
+        to ``<path>.periods.npy``, and the summary to ``path``.json."""
+        timing = self.driver.timing
+        lat = np.frombuffer(timing.latency, dtype=np.float64).copy()
+        periods = np.frombuffer(timing.periods, dtype=np.float64).copy()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.save(path, lat)
+        np.save(path.with_suffix(".periods.npy"), periods)
+        summary = {"composed": True, **latencies_us(timing.latency),
+                   "period": {k: v for k, v in latencies_us(timing.periods).items()},
+                   **timing.counters(), "command_timeouts": self.bridge.command_timeouts,
+                   "hold_steps": self.bridge.hold_steps, "steps": self.bridge.steps,
+                   "long_late_runs": [{"at_s": round(t, 3), "ticks": n} for t, n in timing.long_runs]}
+        path.with_suffix(".json").write_text(json.dumps(summary, indent=1))
+        self.get_logger().info(f"tick log: {lat.size} latencies to {path}")
 
     def write_response_log(self, path: Path) -> None:
         """Every state-to-command latency (s) to ``path`` (.npy) and the counts to ``path``.json."""
@@ -266,8 +345,11 @@ class SimBridgeNode(Node):
     def _on_reset(self, request: ResetSim.Request, response: ResetSim.Response) -> ResetSim.Response:
         q = np.asarray(request.q, dtype=np.float64) if len(request.q) else None
         try:
-            obs = self.bridge.reset(seed=int(request.seed), q=q)
-        except (ValueError, RuntimeError) as exc:
+            if self.driver is not None:  # composed: the world belongs to the driver thread
+                obs = self._host.call(lambda: self.bridge.reset(seed=int(request.seed), q=q)).result(timeout=5.0)
+            else:
+                obs = self.bridge.reset(seed=int(request.seed), q=q)
+        except (ValueError, RuntimeError, TimeoutError) as exc:
             response.success, response.message = False, str(exc)
             self.get_logger().error(f"reset refused: {exc}")
             return response

@@ -1,0 +1,1 @@
+"""Bringup of the nf-control stack: composed executables, process helpers, launch files."""

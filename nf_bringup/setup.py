@@ -1,0 +1,29 @@
+"""ament_python package nf_bringup (entry points install to lib/nf_bringup for ros2 run)."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "nf_bringup"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="nf-control maintainers",
+    maintainer_email="maintainers@nf-control.dev",
+    description=open("package.xml").read().split("<description>")[1].split("</description>")[0],
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "nf_sim_stack = nf_bringup.sim_stack:main",
+        ],
+    },
+)

@@ -1,0 +1,171 @@
+"""The MuJoCo arm as the driver of a composed controller: the 1 kHz tick is a direct call. ROS-free.
+
+``SimDriverLoop`` runs on its own thread in the process that also holds the ``nf_controller``
+node. Each step: posted work (``ControllerHost.service``), the state, the controller's torque
+(``ControllerHost.tick``), one physics step with it, then ``after_step`` (the node publishes
+joint states and the rest). No DDS between state and torque.
+
+- lockstep: as fast as the physics and the controller allow; when the controller would leave a
+  state unanswered (idle_mode "pause" between episodes) the thread sleeps until work is posted.
+- realtime: one step per ``dt`` of wall clock, like a robot's driver; the loop times itself
+  (``TickTiming``): state-to-command latency, tick period, ticks that start late.
+
+Episodes (``begin_episode``) reset the world on this thread and start the episode at the reset
+state, exactly as the in-process rollout does.
+"""
+
+from __future__ import annotations
+
+import array
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+
+import numpy as np
+
+from nf_controller_node.episode import EpisodeRun
+from nf_controller_node.host import ControllerHost
+from sim_bridge_node.bridge import ACCEPTED, SimBridge
+
+LATE_AFTER = 0.001  # s: a tick starting this much after its scheduled time is late
+LONG_LATE_RUN = 3  # runs of at least this many late ticks are kept with their time
+_WAIT_IDLE = 0.05  # s, longest sleep of an idle lockstep loop before it looks again
+
+
+class TickTiming:
+    """Realtime timing of a driver loop, measured on its own clock (``time.perf_counter``)."""
+
+    def __init__(self, period: float, keep_all: bool = False) -> None:
+        self.period = period
+        self.latency = array.array("d")  # state read -> command written, s (kept when keep_all)
+        self.periods = array.array("d")  # start of tick k -> start of tick k+1, s (kept when keep_all)
+        self._keep = keep_all
+        self._window: list[float] = []
+        self.ticks = 0
+        self.late = 0  # ticks that started more than LATE_AFTER after their scheduled time
+        self.run = 0
+        self.longest_run = 0
+        self.long_runs: list[tuple[float, int]] = []  # (s since the start, length) of runs >= LONG_LATE_RUN
+        self.resyncs = 0  # schedule restarted after falling more than 10 periods behind
+        self._t0: float | None = None
+        self._last_start: float | None = None
+
+    def tick(self, scheduled: float, started: float, latency: float) -> None:
+        """One tick that was due at ``scheduled``, began at ``started`` and took ``latency`` from
+        reading the state to writing the command (all s, perf_counter)."""
+        if self._t0 is None:
+            self._t0 = started
+        if self._last_start is not None and self._keep:
+            self.periods.append(started - self._last_start)
+        self._last_start = started
+        self.ticks += 1
+        if self._keep:
+            self.latency.append(latency)
+        if len(self._window) < 100_000:
+            self._window.append(latency)
+        if started - scheduled > LATE_AFTER:
+            self.late += 1
+            self.run += 1
+            self.longest_run = max(self.longest_run, self.run)
+        else:
+            if self.run >= LONG_LATE_RUN:
+                self.long_runs.append((started - self._t0, self.run))
+            self.run = 0
+
+    def take_window(self) -> list[float]:
+        """Latencies (s) since the last call."""
+        window, self._window = self._window, []
+        return window
+
+    def counters(self) -> dict[str, int]:
+        """Counts for diagnostics and the response log."""
+        return {"ticks": self.ticks, "late_ticks": self.late, "longest_late_run": self.longest_run,
+                "resyncs": self.resyncs}
+
+
+class SimDriverLoop:
+    """Steps a ``SimBridge`` with the torques of a ``ControllerHost``; see the module docstring."""
+
+    def __init__(self, bridge: SimBridge, host: ControllerHost, realtime: bool,
+                 after_step: Callable[[], None] = lambda: None, keep_timing: bool = False) -> None:
+        if tuple(host.joint_names) != tuple(bridge.joint_names):
+            raise ValueError(f"controller joints {host.joint_names} differ from the simulated arm's "
+                             f"{list(bridge.joint_names)}")
+        self.bridge = bridge
+        self.host = host
+        self.realtime = realtime
+        self.after_step = after_step
+        self.timing = TickTiming(bridge.dt, keep_all=keep_timing) if realtime else None
+        self.bad_torques = 0  # torques the bridge refused (never expected: the host returns finite ones)
+        self.errors: list[str] = []
+
+    # ------------------------------------------------------------------ episodes (any thread)
+    def begin_episode(self, seed: int, run: EpisodeRun) -> Future:
+        """Reset the world with ``seed`` and start ``run`` at the reset state, on the loop's thread."""
+
+        def reset_and_start() -> None:
+            self.bridge.reset(seed=seed)
+            env = self.bridge.env
+            self.host.set_task(env.insertion_depth, env.success)
+            self.host.start_episode(run, self.bridge.stamp_ns, world_was_reset=True)
+
+        return self.host.call(reset_and_start)
+
+    # ------------------------------------------------------------------ the loop
+    def run(self, stop: threading.Event) -> None:
+        """Step until ``stop`` is set (call on the driver thread)."""
+        if self.realtime:
+            self._run_realtime(stop)
+        else:
+            self._run_lockstep(stop)
+
+    def _step(self, now: float) -> None:
+        bridge, host = self.bridge, self.host
+        env = bridge.env
+        host.set_task(env.insertion_depth, env.success)
+        tau = host.tick(bridge.stamp_ns, env.q, env.dq, now)
+        if bridge.accept_command(tau, now) != ACCEPTED:
+            self.bad_torques += 1
+
+    def _run_lockstep(self, stop: threading.Event) -> None:
+        bridge, host = self.bridge, self.host
+        while not stop.is_set():
+            host.service()
+            if not host.wants_tick(bridge.stamp_ns):
+                host.wait_for_work(_WAIT_IDLE)
+                continue
+            self._step(time.monotonic())
+            bridge.step_commanded()
+            self.after_step()
+
+    def _run_realtime(self, stop: threading.Event) -> None:
+        bridge, host, timing = self.bridge, self.host, self.timing
+        dt = bridge.dt
+        due = time.perf_counter()
+        while not stop.is_set():
+            host.service()
+            started = time.perf_counter()
+            if host.wants_tick(bridge.stamp_ns):
+                self._step(time.monotonic())
+            written = time.perf_counter()
+            bridge.step_realtime(time.monotonic())
+            timing.tick(due, started, written - started)
+            self.after_step()
+            due += dt
+            wait = due - time.perf_counter()
+            if wait > 0.0:
+                time.sleep(wait)
+            elif -wait > 10 * dt:  # far behind (a stall): start a new schedule instead of racing
+                timing.resyncs += 1
+                due = time.perf_counter()
+
+
+def latencies_us(values: array.array | list[float]) -> dict[str, float]:
+    """p50/p99/p99.9/max of latencies given in s, in microseconds."""
+    a = np.frombuffer(values, dtype=np.float64) if isinstance(values, array.array) else np.asarray(values)
+    if a.size == 0:
+        return {"count": 0, "p50_us": 0.0, "p99_us": 0.0, "p999_us": 0.0, "max_us": 0.0}
+    p50, p99, p999 = np.percentile(a, [50, 99, 99.9]) * 1e6
+    return {"count": int(a.size), "p50_us": float(p50), "p99_us": float(p99), "p999_us": float(p999),
+            "max_us": float(a.max() * 1e6)}
