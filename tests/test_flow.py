@@ -481,3 +481,57 @@ def test_compiled_path_gathers_weights_when_not_aliased_and_float32_uses_torch_o
     assert u32.dtype == torch.float32
     p64 = NFPolicy(arch, weights=init_flow_weights(arch, np.random.default_rng(0)))
     torch.testing.assert_close(u32.double(), p64.mean_force(x, xd).detach(), rtol=1e-4, atol=1e-5)
+
+
+# ---- learned gains ------------------------------------------------------------------------------
+
+
+def _learned_gain_policy(seed: int = 3) -> NFPolicy:
+    arch = _arch(3, "gelu", n_flow=1, n_hidden=16)
+    rng = np.random.default_rng(seed)
+    policy = NFPolicy(arch, weights=init_flow_weights(arch, rng), stiffness=np.diag([300.0, 250.0, 60.0]),
+                      damping=np.diag([40.0, 30.0, 20.0]), x_ref=rng.normal(scale=0.3, size=3), learn_gains=True)
+    with torch.no_grad():  # move off the initial values, so the test sees the learned ones in use
+        policy.ln_s.add_(torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64))
+        policy.ln_d.add_(torch.tensor([-0.1, 0.4, 0.2], dtype=torch.float64))
+    return policy
+
+
+def test_learned_gains_compiled_gradient_equals_reference():
+    """The compiled mean force's S, D gradient (to ln_s, ln_d) equals plain torch autograd."""
+    policy = _learned_gain_policy()
+    x, xd = _states(3, 9, seed=11) * 0.2, _states(3, 9, seed=12) * 0.1
+    weights = torch.from_numpy(np.random.default_rng(4).normal(size=(9, 3)))
+    grads = []
+    for fn in (policy.mean_force, policy.mean_force_reference):
+        policy.zero_grad()
+        (fn(x, xd) * weights).sum().backward()
+        grads.append([p.grad.clone() for p in (policy.ln_s, policy.ln_d, *policy.flow.param_list())])
+    for a, b in zip(*grads, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+    assert float(policy.ln_s.grad.abs().sum()) > 0.0 and float(policy.ln_d.grad.abs().sum()) > 0.0
+
+
+def test_learned_gains_reach_the_compiled_evaluator():
+    """The controller's evaluator (from the parameters message) uses the learned S, D: equal forces and V."""
+    policy = _learned_gain_policy()
+    params = policy.to_params()
+    S = policy.gains()[0]
+    np.testing.assert_allclose(params.stiffness, S.detach().numpy())
+    np.testing.assert_allclose(np.diag(params.damping), np.exp(policy.ln_d.detach().numpy()))
+    ev = FlowEvaluator(params)
+    x, xd = _states(3, 6, seed=13) * 0.2, _states(3, 6, seed=14) * 0.1
+    with torch.no_grad():
+        u = policy.mean_force(x, xd)
+        v = policy.lyapunov_potential(x)
+    for n in range(x.shape[0]):
+        np.testing.assert_allclose(ev.force(x[n].numpy(), xd[n].numpy()), u[n].numpy(), atol=1e-9)
+        assert abs(ev.potential(x[n].numpy()) - float(v[n])) < 1e-9
+    policy.sync_gains()
+    torch.testing.assert_close(policy.S, S.detach())
+
+
+def test_learned_gains_need_a_positive_diagonal():
+    arch = _arch(3, "gelu", n_flow=1)
+    with pytest.raises(ValueError, match="positive diagonal"):
+        NFPolicy(arch, stiffness=_spd(np.random.default_rng(0), 3), learn_gains=True)

@@ -30,6 +30,8 @@ BASELINES = ("linear", "value")
 ADV_NORMS = ("standardize", "center", "none")
 STARTS = ("random", "fixed")
 PLANES = ("vertical", "horizontal")
+GAINS = ("fixed", "learned")
+EXPLORATIONS = ("action", "params")
 PHYSICS_DT = 0.001  # s, the simulator's (and controller's) step
 
 # Paper settings per task (DESIGN section 2); used for the fields left at None.
@@ -84,6 +86,21 @@ class TrainConfig:
     """S entry of the last (insertion, z) axis, replacing ``stiffness`` there (None: isotropic S)."""
     damping_axial: float | None = None
     """D entry of the last (insertion, z) axis, replacing ``damping`` there (None: isotropic D)."""
+    gains: str = "fixed"
+    """NF policy: fixed (S, D as set above) or learned (their diagonals, through exp, start at the values
+    above: every value stays symmetric positive definite, so the stability proof holds throughout)."""
+    exploration: str = "action"
+    """NF policy: action (Gaussian force noise held per decision; PPO per decision) or params (every rollout
+    runs the deterministic controller with parameters drawn around the policy's; PPO per rollout)."""
+    param_sigma_gains: float = 0.3
+    """exploration=params: initial std of the perturbation of ln S and ln D (per diagonal entry)."""
+    param_sigma_flow: float = 0.0
+    """exploration=params: initial std of the perturbation of every flow weight (0: the flow is not explored
+    and stays as initialised)."""
+    param_lr: float = 0.05
+    """exploration=params: Adam step size of the parameter-space mean, in units of its exploration std."""
+    param_sigma_lr: float = 0.05
+    """exploration=params: Adam step size of the exploration log-stds (0: the stds stay fixed)."""
     mlp_hidden: int = 64
     """MLP policy: units per hidden layer (two hidden layers)."""
     mlp_activation: str = "tanh"
@@ -152,6 +169,14 @@ class TrainConfig:
         _choice("mlp_activation", self.mlp_activation, MLP_ACTIVATIONS)
         _choice("baseline", self.baseline, BASELINES)
         _choice("adv_norm", self.adv_norm, ADV_NORMS)
+        _choice("gains", self.gains, GAINS)
+        _choice("exploration", self.exploration, EXPLORATIONS)
+        _positive("param_sigma_gains", self.param_sigma_gains)
+        _non_negative("param_sigma_flow", self.param_sigma_flow)
+        _positive("param_lr", self.param_lr)
+        _non_negative("param_sigma_lr", self.param_sigma_lr)
+        if self.exploration == "params" and self.gains == "fixed" and self.param_sigma_flow == 0.0:
+            raise ValueError("exploration=params needs something to explore: gains=learned or param_sigma_flow > 0")
         _positive("sigma_init", self.sigma_init)
         _positive("episode_seconds", self.episode_seconds)
         _positive("decision_period", self.decision_period)

@@ -4,7 +4,9 @@ Mean action (the deterministic, provably stable controller)::
 
     u = -J(x)^T S [phi(x) - phi(x_ref)] - J(x)^T D J(x) xdot
 
-with trainable flow weights and a trainable log-std; S, D and x_ref are fixed.
+with trainable flow weights and a trainable log-std; x_ref is fixed. S and D are fixed, or (``gains=
+"learned"``) diagonal with trainable log-entries, S = diag(exp(ln_s)), D = diag(exp(ln_d)): every
+value is symmetric positive definite, so the stability proof holds for every step of learning.
 
 For a float64 policy the mean force (flow, phi(x_ref) in the same batched pass, and the
 controller law) is one compiled call per batch, with the analytic vector-Jacobian product as its
@@ -21,11 +23,15 @@ from torch import nn
 from torch.autograd.function import FunctionCtx, once_differentiable
 
 from nf_controller_node.flow_spec import FlowArchitecture
-from nf_controller_node.policy_params import PolicyParameters
+from nf_controller_node.policy_params import POLICY_LIMITS, PolicyParameters
 
 from .flow import RealNVPFlow
 from .flow_kernels import force_backward, force_forward
 from .gaussian import GaussianForceMixin
+
+# learned gains stay within what the controller accepts (clamped in log space)
+LN_MAX_STIFFNESS = math.log(POLICY_LIMITS.max_stiffness)
+LN_MAX_DAMPING = math.log(POLICY_LIMITS.max_damping)
 
 
 def _matrix(values: np.ndarray | torch.Tensor | None, dim: int, dtype: torch.dtype) -> torch.Tensor:
@@ -39,11 +45,12 @@ class _CompiledMeanForce(torch.autograd.Function):
 
     @staticmethod
     def forward(
-        ctx: FunctionCtx, policy: NFPolicy, keep: bool, x: torch.Tensor, xdot: torch.Tensor, *params: torch.Tensor
+        ctx: FunctionCtx, policy: NFPolicy, keep: bool, x: torch.Tensor, xdot: torch.Tensor, S_t: torch.Tensor,
+        D_t: torch.Tensor, *params: torch.Tensor
     ) -> torch.Tensor:
         flow = policy.flow
         w = flow.kernel_weights(params)
-        S, D = policy.S.numpy(), policy.D.numpy()
+        S, D = S_t.detach().numpy(), D_t.detach().numpy()
         u, jac, wv, saved = force_forward(
             x.detach().contiguous().numpy(), xdot.detach().contiguous().numpy(), policy.x_ref.numpy(), S, D,
             w, flow.table, flow.arch.n_hidden, flow.activation_code, keep,
@@ -58,14 +65,26 @@ class _CompiledMeanForce(torch.autograd.Function):
     def backward(ctx: FunctionCtx, u_bar: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         (xdot,) = ctx.saved_tensors
         flow = ctx.flow
-        gw, x_bar = force_backward(u_bar.contiguous().numpy(), xdot.detach().contiguous().numpy(), ctx.S, ctx.D,
-                                   ctx.jac, ctx.wv, ctx.w, flow.table, flow.arch.n_hidden, ctx.saved)
-        return (None, None, torch.from_numpy(x_bar) if ctx.needs_input_grad[2] else None, None,
+        ub, xd = u_bar.contiguous().numpy(), xdot.detach().contiguous().numpy()
+        gw, x_bar = force_backward(ub, xd, ctx.S, ctx.D, ctx.jac, ctx.wv, ctx.w, flow.table, flow.arch.n_hidden,
+                                   ctx.saved)
+        gS = gD = None
+        if ctx.needs_input_grad[4] or ctx.needs_input_grad[5]:
+            # u = -J^T w, w = S e + D v (v = J xdot): dL/dS = w_bar e^T, dL/dD = w_bar v^T, w_bar = -J u_bar
+            n = ub.shape[0]
+            jac = ctx.jac[:n]
+            w_bar = -np.einsum("sij,sj->si", jac, ub)
+            v = np.einsum("sij,sj->si", jac, xd)
+            e = np.linalg.solve(ctx.S, (ctx.wv - v @ ctx.D.T).T).T
+            gS = torch.from_numpy(w_bar.T @ e) if ctx.needs_input_grad[4] else None
+            gD = torch.from_numpy(w_bar.T @ v) if ctx.needs_input_grad[5] else None
+        return (None, None, torch.from_numpy(x_bar) if ctx.needs_input_grad[2] else None, None, gS, gD,
                 *flow.split_flat_gradient(gw))
 
 
 class NFPolicy(GaussianForceMixin, nn.Module):
-    """Flow controller policy: trainable flow and log-std, fixed SPD S and D, fixed goal x_ref."""
+    """Flow controller policy: trainable flow and log-std, SPD S and D (fixed, or learned diagonals),
+    fixed goal x_ref."""
 
     def __init__(
         self,
@@ -79,9 +98,11 @@ class NFPolicy(GaussianForceMixin, nn.Module):
         seed: int = 0,
         dtype: torch.dtype = torch.float64,
         flow_init: str = "random",
+        learn_gains: bool = False,
     ) -> None:
         """S, D default to identity, x_ref to zero; log_std defaults to ``[log(sigma_init)]`` (shared);
-        without ``weights`` the flow starts from ``init_flow_weights(seed, flow_init)``."""
+        without ``weights`` the flow starts from ``init_flow_weights(seed, flow_init)``. ``learn_gains``:
+        S and D must be diagonal; their log-diagonals become the parameters ``ln_s`` and ``ln_d``."""
         super().__init__()
         d = arch.dim
         self.arch = arch
@@ -99,6 +120,31 @@ class NFPolicy(GaussianForceMixin, nn.Module):
         if ls.size not in (1, d):
             raise ValueError(f"log_std: expected 1 or {d} values, got {ls.size}")
         self.log_std = nn.Parameter(torch.as_tensor(ls, dtype=dtype).clone())
+        self.learn_gains = bool(learn_gains)
+        if self.learn_gains:
+            for name in ("S", "D"):
+                m = getattr(self, name)
+                if not torch.equal(m, torch.diag(torch.diagonal(m))) or not bool((torch.diagonal(m) > 0).all()):
+                    raise ValueError(f"learned gains need a positive diagonal {name}, got {m.tolist()}")
+            self.ln_s = nn.Parameter(torch.log(torch.diagonal(self.S)).clone())
+            self.ln_d = nn.Parameter(torch.log(torch.diagonal(self.D)).clone())
+
+    # ---- gains -------------------------------------------------------------------------------
+    def gains(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(S, D) as used by the controller now: the fixed buffers, or diag(exp(ln_s)), diag(exp(ln_d))
+        (differentiable in ln_s, ln_d)."""
+        if self.learn_gains:
+            return torch.diag(torch.exp(self.ln_s.clamp(max=LN_MAX_STIFFNESS))), torch.diag(
+                torch.exp(self.ln_d.clamp(max=LN_MAX_DAMPING)))
+        return self.S, self.D
+
+    def sync_gains(self) -> None:
+        """Copy the learned gains into the buffers ``S`` and ``D`` (no-op for fixed gains)."""
+        if self.learn_gains:
+            with torch.no_grad():
+                S, D = self.gains()
+                self.S.copy_(S)
+                self.D.copy_(D)
 
     # ---- controller --------------------------------------------------------------------------
     def _batch(self, v: torch.Tensor | np.ndarray) -> torch.Tensor:
@@ -113,10 +159,12 @@ class NFPolicy(GaussianForceMixin, nn.Module):
         """Deterministic controller u for batches x, xdot of shape (N, dim) (or (dim,)); returns (N, dim)."""
         squeeze = torch.as_tensor(x).dim() == 1
         x, xdot = self._batch(x), self._batch(xdot)
-        if self.flow.compiled() and not any(t.requires_grad for t in (xdot, self.S, self.D, self.x_ref)):
+        S, D = self.gains()
+        if self.flow.compiled() and not any(t.requires_grad for t in (xdot, self.x_ref)):
             params = self.flow.param_list()
-            keep = torch.is_grad_enabled() and (x.requires_grad or any(p.requires_grad for p in params))
-            u = _CompiledMeanForce.apply(self, keep, x, xdot, *params)
+            keep = torch.is_grad_enabled() and (
+                x.requires_grad or S.requires_grad or D.requires_grad or any(p.requires_grad for p in params))
+            u = _CompiledMeanForce.apply(self, keep, x, xdot, S, D, *params)
         else:
             u = self.mean_force_reference(x, xdot)
         return u[0] if squeeze else u
@@ -130,26 +178,28 @@ class NFPolicy(GaussianForceMixin, nn.Module):
         J = J_all[:n]
         # w = S e + D J xdot;  u = -J^T w
         Jv = torch.einsum("nij,nj->ni", J, xdot)
-        w = err @ self.S.T + Jv @ self.D.T
+        S, D = self.gains()
+        w = err @ S.T + Jv @ D.T
         return -torch.einsum("nji,nj->ni", J, w)
 
     def lyapunov_potential(self, x: torch.Tensor) -> torch.Tensor:
         """1/2 (phi(x)-phi(x_ref))^T S (phi(x)-phi(x_ref)) for a batch x; shape (N,) (or scalar)."""
         squeeze = torch.as_tensor(x).dim() == 1
         err = self.flow(self._batch(x)) - self.phi_ref()
-        v = 0.5 * torch.einsum("ni,ij,nj->n", err, self.S, err)
+        v = 0.5 * torch.einsum("ni,ij,nj->n", err, self.gains()[0], err)
         return v[0] if squeeze else v
 
     # ---- parameters message ------------------------------------------------------------------
     def to_params(self, version: int = 0) -> PolicyParameters:
         """Snapshot as validated ``PolicyParameters`` (what the controller node receives)."""
         with torch.no_grad():
+            S, D = self.gains()
             return PolicyParameters(
                 arch=self.arch,
                 weights=self.flow.to_flat(),
                 log_std=self.log_std.detach().to(torch.float64).cpu().numpy().copy(),
-                stiffness=self.S.to(torch.float64).cpu().numpy().copy(),
-                damping=self.D.to(torch.float64).cpu().numpy().copy(),
+                stiffness=S.to(torch.float64).cpu().numpy().copy(),
+                damping=D.to(torch.float64).cpu().numpy().copy(),
                 x_ref=self.x_ref.to(torch.float64).cpu().numpy().copy(),
                 version=int(version),
             )

@@ -24,9 +24,11 @@ from tqdm import tqdm
 
 from nf_controller_node.flow_eval import FlowEvaluator
 from nf_controller_node.flow_spec import FlowArchitecture
+from nf_controller_node.policy_params import PolicyParameters
 
 from .config import TrainConfig
 from .mlp_policy import MLPEvaluator, MLPPolicy
+from .param_explore import ParamExploration, make_param_optimizer, paired_advantages, param_ppo_update
 from .policy import NFPolicy
 from .ppo import (
     LinearFeatureBaseline,
@@ -49,7 +51,8 @@ EVAL_SEED_BASE = 1_000_000_000  # held-out evaluation starts: seeds >= this; tra
 RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes"})
 # settings only the NF policy reads: an MLP run's checkpoint resumes whatever they are
 NF_ONLY = frozenset({"n_flow", "n_hidden", "activation", "flow_init", "stiffness", "damping", "stiffness_axial",
-                     "damping_axial"})
+                     "damping_axial", "gains", "exploration", "param_sigma_gains", "param_sigma_flow", "param_lr",
+                     "param_sigma_lr"})
 TIMING_KEYS = ("rollout_seconds", "update_seconds", "wall_seconds")
 
 
@@ -60,7 +63,7 @@ def build_policy(cfg: TrainConfig, x_ref: np.ndarray) -> NFPolicy | MLPPolicy:
         arch = FlowArchitecture(dim=d, n_flow=cfg.n_flow, n_hidden=cfg.n_hidden, activation=cfg.activation)
         return NFPolicy(arch, stiffness=cfg.stiffness_matrix(), damping=cfg.damping_matrix(),
                         x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed,
-                        flow_init=cfg.flow_init)
+                        flow_init=cfg.flow_init, learn_gains=cfg.gains == "learned")
     return MLPPolicy(d, cfg.mlp_hidden, cfg.mlp_activation, x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed)
 
 
@@ -111,10 +114,16 @@ class Trainer:
         params = list(self.policy.parameters())
         self.baseline = LinearFeatureBaseline()
         self.value_net: ValueNetwork | None = None
-        if cfg.baseline == "value":
-            self.value_net = ValueNetwork(2 * cfg.dim, cfg.value_hidden, seed=cfg.seed)
-            params += list(self.value_net.parameters())
-        self.optimizer = make_optimizer(params, cfg.learning_rate)
+        self.explorer: ParamExploration | None = None
+        self._pending: np.ndarray | None = None  # params exploration: this iteration's parameter draws
+        if cfg.policy == "nf" and cfg.exploration == "params":
+            self.explorer = ParamExploration(self.policy, cfg.param_sigma_gains, cfg.param_sigma_flow)
+            self.optimizer = make_param_optimizer(self.explorer, cfg.param_lr, cfg.param_sigma_lr)
+        else:
+            if cfg.baseline == "value":
+                self.value_net = ValueNetwork(2 * cfg.dim, cfg.value_hidden, seed=cfg.seed)
+                params += list(self.value_net.parameters())
+            self.optimizer = make_optimizer(params, cfg.learning_rate)
         self.settings = PPOSettings(cfg.update_epochs, cfg.minibatch_size, cfg.clip_coef, cfg.vf_coef,
                                     cfg.max_grad_norm, cfg.target_kl)
         self.rng = np.random.default_rng(cfg.seed)
@@ -131,14 +140,32 @@ class Trainer:
         seeds = self.rng.integers(0, EVAL_SEED_BASE, size=(self.cfg.rollouts_per_iter, 2))
         return [(int(start), int(noise)) for start, noise in seeds]
 
+    def episode_plan(self) -> list[tuple[int, int, PolicyParameters | None]]:
+        """(start seed, noise seed, controller parameters) of each rollout of the next iteration.
+
+        Action exploration: ``episode_seeds()`` with parameters None (the policy's, with noise). Parameter
+        exploration: mirrored pairs of parameter draws sharing a start (the second of a pair reuses the
+        first's start seed), each run as a deterministic controller (no noise); the draws are kept for
+        ``update``. Over ROS: publish each rollout's parameters before its episode and run it noise-free.
+        """
+        seeds = self.episode_seeds()
+        if self.explorer is None:
+            return [(start, noise, None) for start, noise in seeds]
+        theta, _ = self.explorer.sample(len(seeds), self.rng)
+        self._pending = theta
+        for i in range(1, 2 * (len(seeds) // 2), 2):
+            seeds[i] = (seeds[i - 1][0], seeds[i][1])
+        return [(start, noise, self.explorer.params_for(th)) for (start, noise), th in zip(seeds, theta, strict=True)]
+
     def collect(self) -> list[EpisodeRecord]:
-        """``rollouts_per_iter`` episodes of the current stochastic policy."""
+        """``rollouts_per_iter`` episodes of the current stochastic policy (or parameter draws)."""
+        plan = self.episode_plan()
+        if self.explorer is not None:
+            return [self.runner.run_episode(FlowEvaluator(params), None, start, None) for start, _, params in plan]
         evaluator = make_evaluator(self.policy)
         sigma = policy_sigma(self.policy)
-        return [
-            self.runner.run_episode(evaluator, sigma, start, np.random.default_rng(noise))
-            for start, noise in self.episode_seeds()
-        ]
+        return [self.runner.run_episode(evaluator, sigma, start, np.random.default_rng(noise))
+                for start, noise, _ in plan]
 
     def make_batch(self, episodes: list[EpisodeRecord]) -> PPOBatch:
         """Advantages from GAE with the baseline (predicted, then refitted on this batch), as tensors."""
@@ -179,20 +206,53 @@ class Trainer:
         """One PPO update from an iteration's episodes (collected here or streamed over ROS) and its
         metrics row (returned and appended to ``history``); ``iteration`` advances by one."""
         t1 = time.perf_counter()
-        batch = self.make_batch(episodes)
-        stats = ppo_update(self.policy, self.optimizer, batch, self.settings, self.rng, self.value_net)
+        if self.explorer is not None:
+            if self._pending is None or len(self._pending) != len(episodes):
+                raise ValueError("params exploration: update() needs the episodes of episode_plan(), in order")
+            adv = paired_advantages(np.array([e.episode_return for e in episodes]))
+            stats = param_ppo_update(self.explorer, self.optimizer, self._pending, adv, self.cfg.update_epochs,
+                                     self.cfg.clip_coef, self.cfg.target_kl)
+            self._pending = None
+            decisions = sum(len(e.reward) for e in episodes)
+        else:
+            batch = self.make_batch(episodes)
+            stats = ppo_update(self.policy, self.optimizer, batch, self.settings, self.rng, self.value_net)
+            decisions = len(batch)
+            if isinstance(self.policy, NFPolicy):
+                self.policy.sync_gains()
         t2 = time.perf_counter()
         self.iteration += 1
         row: dict[str, float] = {"iteration": float(self.iteration)}
         row.update(episode_summary(episodes))
         row["sigma"] = float(policy_sigma(self.policy).mean())
         row.update(stats)
-        row["decisions"] = float(len(batch))
+        row.update(self.gain_metrics())
+        row["decisions"] = float(decisions)
         row["rollout_seconds"] = rollout_seconds
         row["update_seconds"] = t2 - t1
         row["wall_seconds"] = rollout_seconds + (t2 - t1)
         self.history.append(row)
         return row
+
+    def gain_metrics(self) -> dict[str, float]:
+        """NF policy with learned gains or parameter exploration: S and D diagonals (after the update) and
+        the exploration stds; nothing otherwise (the metrics keep the columns they always had)."""
+        pol = self.policy
+        if not isinstance(pol, NFPolicy) or not (pol.learn_gains or self.explorer is not None):
+            return {}
+        out: dict[str, float] = {}
+        with torch.no_grad():
+            S, D = pol.gains()
+            for i, v in enumerate(torch.diagonal(S).tolist()):
+                out[f"stiffness_{i}"] = v
+            for i, v in enumerate(torch.diagonal(D).tolist()):
+                out[f"damping_{i}"] = v
+            if self.explorer is not None:
+                if self.explorer.explore_gains:
+                    out["param_sigma_gains"] = float(torch.exp(self.explorer.log_sigma_gains).mean())
+                if self.explorer.explore_flow:
+                    out["param_sigma_flow"] = float(torch.exp(self.explorer.log_sigma_flow)[0])
+        return out
 
     # ------------------------------------------------------------------ evaluation
     def evaluate(self, episodes: int | None = None) -> dict[str, Any]:
@@ -224,6 +284,7 @@ class Trainer:
             "optimizer": self.optimizer.state_dict(),
             "baseline": self.baseline.state_dict(),
             "value_net": None if self.value_net is None else self.value_net.state_dict(),
+            "explorer": None if self.explorer is None else self.explorer.state_dict(),
             "rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
             "history": self.history,
@@ -246,6 +307,8 @@ class Trainer:
         self.baseline.load_state_dict(state["baseline"])
         if self.value_net is not None:
             self.value_net.load_state_dict(state["value_net"])
+        if self.explorer is not None:
+            self.explorer.load_state_dict(state["explorer"])
         self.rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
         self.iteration = int(state["iteration"])

@@ -1,0 +1,101 @@
+"""Parameter-space exploration: mirrored draws, controller parameters of a draw, the PPO update, the
+trainer's params mode, and the free-space stability measurement."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from learner_node.config import TrainConfig
+from learner_node.exploration_stability import measure, summarize
+from learner_node.param_explore import ParamExploration, make_param_optimizer, paired_advantages, param_ppo_update
+from learner_node.policy import NFPolicy
+from learner_node.trainer import CHECKPOINT, Trainer
+from nf_controller_node.flow_spec import FlowArchitecture
+
+TINY = {"task": "block", "iterations": 2, "rollouts_per_iter": 5, "episode_seconds": 0.2, "update_epochs": 3,
+        "eval_episodes": 1, "gains": "learned", "exploration": "params", "flow_init": "identity"}
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def _policy(flow_sigma: float = 0.0) -> tuple[NFPolicy, ParamExploration]:
+    arch = FlowArchitecture(dim=3, n_flow=1, n_hidden=8, activation="gelu")
+    policy = NFPolicy(arch, stiffness=np.diag([300.0, 300.0, 300.0]), damping=np.diag([40.0] * 3),
+                      x_ref=np.array([0.5, 0.0, 0.3]), learn_gains=True, flow_init="identity")
+    return policy, ParamExploration(policy, 0.4, flow_sigma)
+
+
+def test_mirrored_draws_and_their_controller_parameters():
+    policy, explorer = _policy(flow_sigma=0.01)
+    theta, eps = explorer.sample(7, np.random.default_rng(0))
+    assert theta.shape == (7, 6 + policy.arch.n_params)
+    np.testing.assert_array_equal(eps[0::2][:3], -eps[1::2])  # pairs mu +- sigma eps
+    np.testing.assert_array_equal(eps[6], 0.0)  # odd last: mu itself
+    mu = explorer.mean().detach().numpy()
+    np.testing.assert_allclose(theta[6], mu)
+    p = explorer.params_for(theta[0])
+    np.testing.assert_allclose(np.diag(p.stiffness), np.exp(theta[0, :3]))
+    np.testing.assert_allclose(np.diag(p.damping), np.exp(theta[0, 3:6]))
+    np.testing.assert_allclose(p.weights, theta[0, 6:])
+    assert np.all(np.linalg.eigvalsh(p.stiffness) > 0) and np.all(np.linalg.eigvalsh(p.damping) > 0)
+
+
+def test_paired_advantages():
+    adv = paired_advantages(np.array([3.0, 1.0, 0.0, 4.0, 9.0]))
+    np.testing.assert_allclose(adv / adv[0], [1.0, -1.0, -2.0, 2.0, 0.0])
+    assert abs(np.sqrt(np.mean(adv[:4] ** 2)) - 1.0) < 1e-12
+
+
+def test_update_moves_the_gains_toward_the_better_draws():
+    """Rollouts return more for a softer z axis: the update lowers ln S_z and leaves the stds finite."""
+    policy, explorer = _policy()
+    opt = make_param_optimizer(explorer, 0.1, 0.01)
+    rng = np.random.default_rng(1)
+    z0 = float(policy.ln_s[2])
+    for _ in range(5):
+        theta, _ = explorer.sample(14, rng)
+        adv = paired_advantages(-theta[:, 2])
+        stats = param_ppo_update(explorer, opt, theta, adv, epochs=5, clip_coef=0.2)
+        assert np.isfinite(stats["approx_kl"])
+    assert float(policy.ln_s[2]) < z0 - 0.2
+    torch.testing.assert_close(policy.S, policy.gains()[0].detach())  # synced for the checkpoint
+
+
+def test_trainer_params_mode_pairs_starts_and_resumes_exactly(tmp_path):
+    straight = Trainer(TrainConfig(**TINY), tmp_path / "a")
+    plan = straight.episode_plan()
+    assert [s for s, _, _ in plan][0::2][:2] == [s for s, _, _ in plan][1::2]  # a pair shares its start
+    assert all(p is not None for _, _, p in plan)
+    straight = Trainer(TrainConfig(**TINY), tmp_path / "a")
+    straight.run(evaluate=False)
+    assert "stiffness_1" in straight.history[-1] and "param_sigma_gains" in straight.history[-1]
+    first = Trainer(TrainConfig(**{**TINY, "iterations": 1}), tmp_path / "b")
+    first.run(evaluate=False)
+    resumed = Trainer(TrainConfig(**TINY), tmp_path / "b")
+    resumed.load_checkpoint(tmp_path / "b" / CHECKPOINT)
+    resumed.run(evaluate=False)
+    for key, value in straight.policy.state_dict().items():
+        assert torch.equal(value, resumed.policy.state_dict()[key]), key
+    assert torch.equal(straight.explorer.log_sigma_gains, resumed.explorer.log_sigma_gains)
+
+
+def test_params_mode_needs_something_to_explore():
+    with pytest.raises(ValueError, match="needs something to explore"):
+        TrainConfig(task="block", exploration="params")
+
+
+def test_free_space_parameter_draws_never_raise_v_and_action_noise_does_work():
+    policy, explorer = _policy()
+    params = measure(policy, "params", 4, 0.3, explorer=explorer)
+    noise = measure(policy, "action", 2, 0.3, sigma=5.0, hold=0.01)
+    assert summarize(params)["rising_fraction"] == 0.0
+    assert all(r.gain <= 1e-3 for r in params)
+    assert any(abs(r.work) > 1e-6 for r in noise)
