@@ -327,3 +327,62 @@ def test_monitor_update_with_irregular_dt():
     m2 = LyapunovMonitor(dt=0.02, tolerance=1e-3, time_constant=0.1)
     m2.update(1.0)
     assert m2.update(2.0) == pytest.approx(0.02 / 0.12 * 50.0), "without dt: the constructor's"
+
+
+# ---------------------------------------------------------------------------- all of it at once
+def test_fuzz_torques_stay_finite_limited_and_rate_limited_and_every_fault_clears(arm):
+    """A few thousand joint states, a third of them hostile (NaN, 1e300, 1e6 rad/s, beyond the
+    limits, far-future or old stamps, unknown or huge name lists, wrong sizes), with an episode
+    (no world reset) running through part of them: every torque is finite, within the torque
+    limits and within one rate-limit step of the previous one, and every fault clears."""
+    rng = np.random.default_rng(16)
+    loop = _loop(arm, idle_mode="hold")
+    feed = _Feed(loop)
+    limits = panda_spec.TORQUE_LIMITS
+    prev = feed()[0].copy()
+    run = None
+    faults_seen = 0
+    for k in range(3000):
+        if k == 500:
+            run = EpisodeRun(_spec(loop.policy.x_ref, sigma=20.0, duration=1.0))
+            loop.clear_fault()
+            loop.start_episode(run, feed.stamp + 1)
+        if run is not None and (run.done or loop.fault):
+            loop.end_episode()
+            run = None
+        q = Q0 + rng.normal(0.0, 0.05, 7)
+        dq = rng.normal(0.0, 0.3, 7)
+        kind = rng.integers(0, 12)
+        args: dict = {"q": q, "dq": dq}
+        if kind == 0:
+            args["q"] = np.where(rng.random(7) < 0.3, np.nan, q)
+        elif kind == 1:
+            args["q"] = q * 1e300
+        elif kind == 2:
+            args["dq"] = np.where(np.arange(7) == rng.integers(7), rng.choice([-1e6, 1e6]), dq)
+        elif kind == 3:
+            args["q"] = np.where(np.arange(7) == 3, panda_spec.Q_MAX[3] + rng.uniform(0.1, 3.0), q)
+        elif kind == 4:
+            args["stamp"] = FAR_FUTURE_NS + int(rng.integers(10**9))
+        elif kind == 5:
+            args["stamp"] = int(rng.integers(0, max(1, feed.stamp)))
+        elif kind == 6:
+            n = int(rng.integers(8, 30))
+            args.update(names=[f"j{i}" for i in range(n)], q=np.zeros(n), dq=np.zeros(n))
+        elif kind == 7:
+            args["q"] = q[:5]
+        tau, new = feed(**args)
+        faults_seen += bool(new)
+        assert np.all(np.isfinite(tau)) and np.all(np.abs(tau) <= limits + 1e-12)
+        assert np.max(np.abs(tau - prev)) <= MAX_STEP + 1e-9, (k, kind)
+        prev = tau.copy()
+        assert len(loop.fault) <= FAULT_TEXT_MAX
+        if loop.fault and rng.random() < 0.2:
+            loop.clear_fault()
+            feed.stamp += 1_000_000
+            tau, new = feed()
+            assert new == "" and loop.fault == "", (k, loop.fault)
+            assert np.max(np.abs(tau - prev)) <= MAX_STEP + 1e-9
+            prev = tau.copy()
+    assert faults_seen > 100 and loop.bad_inputs > 500
+    assert loop.take_rejection_report() is not None

@@ -110,3 +110,18 @@ def test_the_trained_settings_pass(arm, task):
         params.log_std = np.array([math.log(sigma)])
         params.version += 1
         assert loop.set_policy(params)
+
+
+def test_prepared_policy_is_checked_off_thread_and_its_version_again_on_install(arm):
+    """The node checks and builds on its executor thread (prepare_policy) and installs on the tick's
+    thread (set_policy with the evaluator): a version that went backwards meanwhile is refused."""
+    loop = ControlLoop(arm)
+    with pytest.raises(PolicyParameterError, match="weights"):
+        loop.prepare_policy(_params(version=3, weights=_huge_weight()))
+    old = _params(version=4)
+    evaluator = loop.prepare_policy(old)
+    assert loop.set_policy(_params(version=6))
+    with pytest.raises(PolicyParameterError, match="version 4 is older than version 6"):
+        loop.set_policy(old, evaluator)
+    newer = _params(version=7)
+    assert loop.set_policy(newer, loop.prepare_policy(newer)) and loop.policy_version == 7
