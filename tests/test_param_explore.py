@@ -52,6 +52,8 @@ def test_paired_advantages():
     adv = paired_advantages(np.array([3.0, 1.0, 0.0, 4.0, 9.0]))
     np.testing.assert_allclose(adv / adv[0], [1.0, -1.0, -2.0, 2.0, 0.0])
     assert abs(np.sqrt(np.mean(adv[:4] ** 2)) - 1.0) < 1e-12
+    adv = paired_advantages(np.array([3.0, np.nan, 0.0, 4.0]))  # a failed episode drops its pair
+    np.testing.assert_allclose(adv, [0.0, 0.0, -np.sqrt(2.0), np.sqrt(2.0)])
 
 
 def test_update_moves_the_gains_toward_the_better_draws():

@@ -112,11 +112,13 @@ class ParamExploration(nn.Module):
 
 def paired_advantages(returns: np.ndarray) -> np.ndarray:
     """Advantages of mirrored pairs (0, 1), (2, 3), ...: half the return difference (+ for the better
-    member); an unpaired last rollout gets 0. Divided by their std over the pairs (if not 0)."""
+    member); an unpaired last rollout, or a pair with a NaN return (a failed episode), gets 0. Divided by
+    their root mean square over the pairs (if not 0)."""
     r = np.asarray(returns, dtype=np.float64)
     adv = np.zeros_like(r)
     m = len(r) // 2
     diff = 0.5 * (r[0 : 2 * m : 2] - r[1 : 2 * m : 2])
+    diff[~np.isfinite(diff)] = 0.0
     adv[0 : 2 * m : 2] = diff
     adv[1 : 2 * m : 2] = -diff
     scale = float(np.sqrt(np.mean(diff * diff))) if m else 0.0

@@ -202,14 +202,20 @@ class Trainer:
         episodes = self.collect()
         return self.update(episodes, time.perf_counter() - t0)
 
-    def update(self, episodes: list[EpisodeRecord], rollout_seconds: float) -> dict[str, float]:
+    def update(self, episodes: list[EpisodeRecord | None], rollout_seconds: float) -> dict[str, float]:
         """One PPO update from an iteration's episodes (collected here or streamed over ROS) and its
-        metrics row (returned and appended to ``history``); ``iteration`` advances by one."""
+        metrics row (returned and appended to ``history``); ``iteration`` advances by one.
+
+        Parameter exploration: ``episodes`` are those of ``episode_plan()``, in its order, with None for
+        one that failed (its pair then does not count)."""
         t1 = time.perf_counter()
         if self.explorer is not None:
             if self._pending is None or len(self._pending) != len(episodes):
                 raise ValueError("params exploration: update() needs the episodes of episode_plan(), in order")
-            adv = paired_advantages(np.array([e.episode_return for e in episodes]))
+            adv = paired_advantages(np.array([np.nan if e is None else e.episode_return for e in episodes]))
+            episodes = [e for e in episodes if e is not None]
+            if not episodes:
+                raise ValueError("params exploration: every episode failed")
             stats = param_ppo_update(self.explorer, self.optimizer, self._pending, adv, self.cfg.update_epochs,
                                      self.cfg.clip_coef, self.cfg.target_kl)
             self._pending = None
