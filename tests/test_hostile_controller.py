@@ -386,3 +386,15 @@ def test_fuzz_torques_stay_finite_limited_and_rate_limited_and_every_fault_clear
             prev = tau.copy()
     assert faults_seen > 100 and loop.bad_inputs > 500
     assert loop.take_rejection_report() is not None
+
+
+def test_flow_controller_hold_is_not_driven_by_an_absurd_velocity(arm):
+    """Defence in depth for direct users of FlowController.hold (the loop rejects such states first)."""
+    loop = _loop(arm)
+    ctrl = loop.controller
+    ctrl.reset_rate_limit()
+    tau = ctrl.hold(Q0, np.r_[REST[:3], 1e6, REST[4:]]).copy()
+    np.testing.assert_allclose(tau, _gravity(arm, Q0), atol=1e-9)
+    ctrl.reset_rate_limit()
+    slow = np.full(7, 0.5)
+    np.testing.assert_allclose(ctrl.hold(Q0, slow), _gravity(arm, Q0) - ctrl.law.hold_damping * slow, atol=1e-9)

@@ -21,11 +21,16 @@ from .torque_law import (
 )
 
 _Q_SANE = 2.0 * np.pi  # |q| beyond this (rad) cannot be a Panda joint angle
+# |dq| beyond this (rad/s) drives no damping in the safe hold: 4x the Panda's fastest joint. The
+# control loop rejects far less (panda_spec.DQ_PLAUSIBLE_MAX); this guards direct users of hold().
+_DQ_SANE_HOLD = 4.0 * 2.61
 
 
 @njit(cache=True)
-def _state_fault(q: np.ndarray, dq: np.ndarray, q_sane: float) -> int:
-    """0 if (q, dq) is usable; 1 non-finite q, 2 non-finite dq, 3 q out of any joint range."""
+def _state_fault(q: np.ndarray, dq: np.ndarray, q_sane: float, dq_sane: float = np.inf) -> int:
+    """0 if (q, dq) is usable; 1 non-finite q, 2 non-finite dq, 3 q out of any joint range,
+    4 (only if nothing else) |dq| above ``dq_sane``."""
+    fast = False
     for i in range(q.shape[0]):
         if not np.isfinite(q[i]):
             return 1
@@ -33,7 +38,9 @@ def _state_fault(q: np.ndarray, dq: np.ndarray, q_sane: float) -> int:
             return 2
         if abs(q[i]) > q_sane:
             return 3
-    return 0
+        if abs(dq[i]) > dq_sane:
+            fast = True
+    return 4 if fast else 0
 
 
 _FAULTS = {1: "joint positions not finite", 2: "joint velocities not finite", 3: "joint position out of range"}
@@ -168,13 +175,15 @@ class FlowController:
         return self.tau
 
     def hold(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
-        """Safe-hold torque: gravity compensation + joint damping (no flow)."""
+        """Safe-hold torque: gravity compensation + joint damping (no flow). An unusable q holds the
+        last valid gravity; an absurd dq (beyond 4x the velocity limit) drives no damping."""
         law = self.law
-        ok = q.shape == (self.n,) and dq.shape == (self.n,) and _state_fault(q, dq, _Q_SANE) == 0
-        if ok:
+        code = _state_fault(q, dq, _Q_SANE, _DQ_SANE_HOLD) if q.shape == dq.shape == (self.n,) else 1
+        if code == 0 or code == 4:  # q usable
             self._g_last = pin.computeGeneralizedGravity(self.arm.model, self.arm.data, q).copy()
+        damp = code == 0
         self.flags = safe_hold_torque(
-            self._g_last, dq if ok else self._dq_zero, law.hold_damping, law.gravity_compensation,
+            self._g_last, dq if damp else self._dq_zero, law.hold_damping, law.gravity_compensation,
             self.tau_prev, law.torque_limits, law.max_step, self.tau,
         )
         self.tau_prev[:] = self.tau
