@@ -125,3 +125,12 @@ def test_prepared_policy_is_checked_off_thread_and_its_version_again_on_install(
         loop.set_policy(old, evaluator)
     newer = _params(version=7)
     assert loop.set_policy(newer, loop.prepare_policy(newer)) and loop.policy_version == 7
+
+
+def test_gains_clamped_in_log_space_to_the_bound_pass(arm):
+    """A learner clamping log-gains at log(bound) sends exp(log(1e4)) = 10000.00000000001."""
+    limits = policy_params.POLICY_LIMITS
+    for dtype in (np.float64, np.float32):
+        s = float(np.exp(np.asarray(math.log(limits.max_stiffness), dtype=dtype)))
+        d = float(np.exp(np.asarray(math.log(limits.max_damping), dtype=dtype)))
+        _params(stiffness=np.diag([s, 300.0, 300.0]), damping=np.diag([d, 40.0, 40.0])).check_limits()

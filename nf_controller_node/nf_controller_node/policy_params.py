@@ -45,6 +45,9 @@ class PolicyLimits:
 
 
 POLICY_LIMITS = PolicyLimits()
+# Relative slack on the S and D bounds: a learner that clamps its gains in log space to exactly the
+# bound sends exp(log(1e4)) = 10000.00000000001 (float32: 10000.001); that is the bound, not above it.
+_LIMIT_RTOL = 1e-6
 
 
 def _finite_array(name: str, values: Any, length: int | None = None) -> np.ndarray:
@@ -122,7 +125,7 @@ class PolicyParameters:
         for name, mat, most, unit in (("stiffness S", self.stiffness, limits.max_stiffness, "N/m"),
                                       ("damping D", self.damping, limits.max_damping, "N s/m")):
             top = float(np.linalg.eigvalsh(mat)[-1])
-            if top > most:
+            if top > most * (1.0 + _LIMIT_RTOL):
                 raise PolicyParameterError(f"{name}: largest eigenvalue {top:.3g} {unit}, at most {most:.3g} {unit}")
         if reach:
             top = float(np.max(np.abs(self.x_ref)))  # |x| >= its largest entry; no overflow for 1e300
