@@ -30,7 +30,7 @@ bench-deps: setup
 	fi
 
 run: setup  ## the whole stack learning the gear in simulation (lockstep); ARGS="--iterations 20" etc.
-	@$(ENV) && python -m learner_node.stack --config config/gear.yaml $(ARGS)
+	@$(ENV) && python -m nf_bringup.stack --config config/gear.yaml $(ARGS)
 
 clean:  ## remove build products (keeps .venv)
 	rm -rf ros2_ws/build ros2_ws/install ros2_ws/log ros2_ws/.build.sha256 env.sh

@@ -40,8 +40,17 @@ def _stack_line(stack: dict) -> str:
 
 
 def _realtime_line(realtime: dict) -> str:
+    k, t = realtime["composed"], realtime["composed_targets"]
+    line = (f"   realtime 1 kHz composed ({realtime['seconds']['composed']:.0f} s): state->torque median "
+            f"{k['p50_us']:.0f} us, p99 {k['p99_us']:.0f} us (target <= {t['p99_us_max']:.0f}), p99.9 "
+            f"{k['p999_us']:.0f} us (<= {t['p999_us_max']:.0f}), longest run of late ticks {k['longest_late_run']} "
+            f"(< {t['late_run_below']})")
+    if realtime.get("controller") is None:
+        return line
     c, e = realtime["controller"], realtime["baseline_echo"]
-    return (f"   realtime 1 kHz ({realtime['seconds']['controller']:.0f} s): latency median {c['p50_us']:.0f} us, "
+    return line + "\n" + (
+            f"   realtime 1 kHz over topics ({realtime['seconds']['controller']:.0f} s): latency median "
+            f"{c['p50_us']:.0f} us, "
             f"p99 {c['p99_us']:.0f} us (target <= {realtime['targets']['p99_us_max']:.0f}), misses "
             f"{100 * c['miss_fraction']:.2f} %, longest run {c['longest_miss_run']} (target < "
             f"{realtime['targets']['longest_miss_run_below']}); echo baseline p99 {e['p99_us']:.0f} us")

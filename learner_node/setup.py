@@ -26,7 +26,6 @@ setup(
             "flow_selfcheck = learner_node.selfcheck:main",
             "train = learner_node.train_cli:main",
             "learner = learner_node.node:main",
-            "run_stack = learner_node.stack:main",
             "nf_report = learner_node.report:main",
             "nf_compare = learner_node.compare:main",
         ],

@@ -1,5 +1,6 @@
-"""`make run`'s process runner end to end: sim, controller, learner and bag recorder as separate
-processes over real DDS, one short PPO iteration, and the run folder a user gets."""
+"""`make run`'s process runner end to end: the composed arm (sim + controller in one process),
+learner and bag recorder as separate processes over real DDS, one short PPO iteration, and the run
+folder a user gets."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ import time
 import pytest
 from nf_bags import bagfile, reader
 
-from learner_node.stack import RECORDER_READY, ManagedProcess, wait_for_recorder
+from nf_bringup.processes import ManagedProcess
+from nf_bringup.stack import RECORDER_READY, wait_for_recorder
 
 from ros_testing import REPO, allocate_domain_id, ros_env
 
@@ -67,14 +69,14 @@ def test_stack_runs_an_iteration_and_leaves_a_complete_run_folder(tmp_path):
     domain = allocate_domain_id()
     learner_args = ["-p", "learner_node:rollouts_per_iter:=2", "-p", "learner_node:eval_episodes:=1",
                     "-p", "episode_seconds:=0.5"]
-    cmd = [sys.executable, "-m", "learner_node.stack", "--config", str(REPO / "config" / "gear.yaml"),
+    cmd = [sys.executable, "-m", "nf_bringup.stack", "--config", str(REPO / "config" / "gear.yaml"),
            "--iterations", "1", "--out", str(run), "--domain-id", str(domain),
            *[f"--learner-arg={a}" for a in learner_args]]
     done = subprocess.run(cmd, env=ros_env(domain), capture_output=True, text=True, timeout=400, cwd=tmp_path)
     out = done.stdout + done.stderr
     assert done.returncode == 0, out[-3000:]
     # logs are forwarded with a prefix per process, and kept per process
-    for name in ("sim", "controller", "learner", "recorder"):
+    for name in ("arm", "learner", "recorder"):
         assert f"[{name}" in out, name
         assert (run / "logs" / f"{name}.log").stat().st_size > 0
     metrics = json.loads((run / "learner" / "metrics.json").read_text())

@@ -2,7 +2,7 @@
 controller, with gravity compensation left to Franka's driver, the stale-state watchdog on,
 no simulator reset, and the safe hold between episodes. The learner runs separately.
 
-    ros2 launch launch/controller_hardware.launch.py config:=config/gear.yaml
+    ros2 launch nf_bringup controller_hardware.launch.py config:=config/gear.yaml
 """
 
 from launch import LaunchDescription

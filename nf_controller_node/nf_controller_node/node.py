@@ -42,7 +42,7 @@ from .arm_model import ArmModel
 from .control_loop import MODE_IDLE, MODE_RESETTING, MODE_RUNNING, MODE_SAFE_HOLD, ControlLoop, LoopConfig
 from .episode import Chunk, EpisodeRun, EpisodeSpec, check_goal_duration
 from .host import CHUNK, EPISODE_END, FAULT, ControllerHost, EpisodeDriver, success_of
-from .panda_spec import GEAR_PART
+from .panda_spec import HELD_PART_NAMES, held_part_by_name
 from .policy_params import PolicyParameterError, PolicyParameters
 from .reward import RewardWeights
 from .ros_runtime import declare_read_only, run_node
@@ -64,7 +64,7 @@ from .torque_law import TorqueLawConfig
 _LAW = TorqueLawConfig()
 PARAMETERS = {
     "gravity_compensation": (True, "add g(q) to the torque; false when the driver compensates gravity (Franka)"),
-    "held_part": ("gear", "mass model of the part in the hand: gear | none"),
+    "held_part": ("gear", f"mass model and TCP of the part in the hand: {' | '.join(HELD_PART_NAMES)}"),
     "k_rot": (_LAW.k_rot, "orientation stiffness about the insertion orientation, Nm/rad"),
     "d_rot": (_LAW.d_rot, "orientation damping, Nm s/rad"),
     "joint_damping": (_LAW.joint_damping, "joint damping for the null space, Nm s/rad"),
@@ -122,8 +122,7 @@ def _goal_problem(goal: RunEpisode.Goal) -> str:
 
 
 def _loop_from(p: dict, arm: ArmModel | None = None, joint_names: Sequence[str] | None = None) -> ControlLoop:
-    if p["held_part"] not in ("gear", "none"):
-        raise ValueError(f"held_part must be 'gear' or 'none', got {p['held_part']!r}")
+    part = held_part_by_name(p["held_part"])  # ValueError names the choices
     for name in ("status_rate", "diagnostics_period"):
         if not p[name] > 0.0:
             raise ValueError(f"{name} must be > 0, got {p[name]}")
@@ -135,7 +134,7 @@ def _loop_from(p: dict, arm: ArmModel | None = None, joint_names: Sequence[str] 
         raise ValueError(f"chunk_decisions must be >= 1, got {p['chunk_decisions']}")
     RewardWeights.from_config(_Attrs(p)).check()
     if arm is None:
-        arm = ArmModel(part=GEAR_PART if p["held_part"] == "gear" else None)
+        arm = ArmModel(part=part)
     if joint_names is None:
         return ControlLoop(arm, law, config)
     return ControlLoop(arm, law, config, joint_names=joint_names)

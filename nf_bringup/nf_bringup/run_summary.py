@@ -1,0 +1,98 @@
+"""What ``run_stack`` leaves in a run folder besides the learner's files: ``summary.md``, the learning
+curves, a line about the bag, and a video of the final policy."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | None, composed: bool = True) -> Path:
+    """``summary.md``: settings, learning progress, evaluation, timings and the files of the run."""
+    learner = run_dir / "learner"
+    metrics = json.loads((learner / "metrics.json").read_text()) if (learner / "metrics.json").exists() else []
+    evaluation = json.loads((learner / "evaluation.json").read_text()) if (learner / "evaluation.json").exists() \
+        else None
+    cfg = json.loads((learner / "config.json").read_text()) if (learner / "config.json").exists() else {}
+    how = "sim and controller composed in one process" if composed else "sim and controller as two processes"
+    lines = [f"# Run {run_dir.name}", "", f"Stack run with `{config}` over ROS 2 (lockstep simulation, {how}), "
+             f"{wall / 60:.1f} min wall time, learner exit code {exit_code}.", ""]
+    if cfg:
+        lines += [f"Task **{cfg.get('task')}**, policy {cfg.get('policy')}-PPO, sigma_init {cfg.get('sigma_init')} N, "
+                  f"seed {cfg.get('seed')}, {cfg.get('rollouts_per_iter')} rollouts of {cfg.get('episode_seconds')} s "
+                  "per iteration.", ""]
+    if metrics:
+        lines += ["| iteration | return | success | final distance (m) | torque (Nm) | rollouts (s) | update (s) |",
+                  "|---|---|---|---|---|---|---|"]
+        for r in metrics:
+            lines.append(f"| {int(r['iteration'])} | {r['return_mean']:.1f} | {r['success_rate']:.2f} | "
+                         f"{r['final_distance_mean']:.4f} | {r['torque_norm_mean']:.2f} | {r['rollout_seconds']:.1f} | "
+                         f"{r['update_seconds']:.1f} |")
+        lines.append("")
+    else:
+        lines += ["No iteration completed.", ""]
+    if evaluation:
+        lines += [f"Deterministic controller after iteration {evaluation['iteration']} on "
+                  f"{evaluation['episodes']} held-out starts: success {evaluation['success_rate']:.2f}, "
+                  f"final distance {evaluation['final_distance_mean']:.4f} m.", ""]
+    lines += bag_lines(run_dir / "bag")
+    files = sorted(p.relative_to(run_dir) for p in run_dir.rglob("*") if p.is_file())
+    shown = [f for f in files if not str(f).startswith(("logs/", "bag/"))]
+    lines += ["Files:", ""] + [f"- `{f}`" for f in shown] \
+        + (["- `bag/`"] if (run_dir / "bag").exists() else []) + ["- `logs/`", ""]
+    path = run_dir / "summary.md"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def plot_curves(metrics_path: Path, out: Path, title: str) -> bool:
+    """Learning curves of the run (``plots.plot_learning_curves``); False when there is nothing to plot."""
+    rows = json.loads(metrics_path.read_text()) if metrics_path.exists() else []
+    if not rows:
+        return False
+    from learner_node.plots import plot_learning_curves
+
+    plot_learning_curves([rows], out, title, label="this run")
+    return True
+
+
+def bag_lines(bag: Path) -> list[str]:
+    """Lines for ``summary.md`` about the run's bag (topics and message counts), or why there is none."""
+    if not bag.exists():
+        return ["No bag was recorded (`nf_bags` not importable).", ""]
+    try:
+        from nf_bags import bagfile
+
+        health = bagfile.scan(bag)
+    except Exception as exc:  # a broken bag must not hide the run's results
+        return [f"Bag `{bag.name}/` could not be read: {exc}", ""]
+    counts = ", ".join(f"{t} {n}" for t, n in sorted(health.counts.items()))
+    state = "closed" if health.closed else "NOT closed (see `python -m nf_bags.info --repair`)"
+    size = sum(f.stat().st_size for f in bag.glob("*.mcap")) / 1e6
+    return [f"Bag `{bag.name}/` ({state}, {size:.1f} MB): {sum(health.counts.values())} messages: {counts}. "
+            f"Inspect with `python -m nf_bags.info {bag}`.", ""]
+
+
+def final_video(run_dir: Path) -> Path | None:
+    """GIF of the final deterministic policy from the first held-out start (None without a checkpoint)."""
+    checkpoint = run_dir / "learner" / "checkpoint.pt"
+    if not checkpoint.exists():
+        return None
+    import torch
+
+    from learner_node.config import TrainConfig
+    from learner_node.trainer import EVAL_SEED_BASE, Trainer
+
+    state = torch.load(checkpoint, weights_only=True)
+    cfg = TrainConfig(**state["config"])
+    trainer = Trainer(cfg)
+    trainer.load_state_dict(state)
+    params = trainer.policy.to_params(version=trainer.iteration)
+    out = run_dir / "final_policy.gif"
+    from learner_node.video import render_policy_gif
+
+    info = render_policy_gif(params, cfg.task, out, start_seed=trainer.runner.start_seed(EVAL_SEED_BASE),
+                             seconds=cfg.episode_seconds)
+    print(f"[stack] video of the final policy: {out} (depth {info['insertion_depth'] * 1e3:.1f} mm, "
+          f"success {info['success']})", flush=True)
+    return out
