@@ -70,18 +70,21 @@ class FakeClock:
         return self.t
 
 
-def _copy_messages(messages, bag: Path, config: WriterConfig, clock=None) -> BagWriter:
+def _copy_messages(messages, bag: Path, config: WriterConfig, clock=None, spacing_ns: int | None = None
+                   ) -> BagWriter:
+    """A bag of ``messages`` (received ``spacing_ns`` apart if given, else at their recorded times)."""
     writer = BagWriter(bag, config, **({"clock": clock} if clock else {}))
-    for m in messages:
+    t0 = messages[0].log_time
+    for i, m in enumerate(messages):
         if m.topic not in writer.topics:
             writer.add_topic(m.topic, m.type, m.schema.data.decode())
-        writer.write(m.topic, m.data, m.log_time)
+        writer.write(m.topic, m.data, m.log_time if spacing_ns is None else t0 + i * spacing_ns)
     return writer
 
 
 def test_writer_chunks_by_time_and_size_splits_files_and_keeps_metadata_current(sample_messages, tmp_path):
     clock = FakeClock()
-    writer = _copy_messages(sample_messages[:100], tmp_path / "a", WriterConfig(chunk_bytes=1 << 30), clock)
+    writer = _copy_messages(sample_messages[:100], tmp_path / "a", WriterConfig(chunk_bytes=1 << 30), clock, 1_000_000)
     assert writer.chunks == 0
     meta = bagfile.load_metadata(tmp_path / "a")
     assert meta["message_count"] < 100  # written at start and per new topic; counts come with the next update
@@ -125,8 +128,15 @@ def test_torn_file_reads_to_its_last_complete_chunk_and_repairs(sample_messages,
     assert readable == [m.data for m in sample_messages[:len(readable)]], "a prefix, nothing out of order"
     assert sum(health.lost.values()) == len(sample_messages) - len(readable)
     assert "NOT CLOSED" in health.report()
-    bagfile.repair(bag)
-    repaired = bagfile.scan(bag)
-    assert repaired.closed and [m.data for m in bagfile.iter_raw(bag)] == readable
-    with AnyReader([bag]) as r:
+    torn_bytes = path.read_bytes()
+    result = bagfile.repair(bag)
+    # a repaired copy next to the original, which stays as it was; the report says what was dropped
+    assert result.output == tmp_path / "torn.repaired" and path.read_bytes() == torn_bytes
+    assert result.messages == len(readable) and any("torn bytes" in d for d in result.dropped), result.report()
+    repaired = bagfile.scan(result.output)
+    assert repaired.state == "repaired" and [m.data for m in bagfile.iter_raw(result.output)] == readable
+    assert f"the original lost {len(sample_messages) - len(readable)} messages counted" in repaired.report()
+    with AnyReader([result.output]) as r:
         assert sum(1 for _ in r.messages()) == len(readable)
+    with pytest.raises(bagfile.BagError, match="exists"):
+        bagfile.repair(bag)  # never over an earlier copy

@@ -1,38 +1,81 @@
-"""``python -m nf_bags.info BAG [--json] [--repair]``: topics, counts, files, chunks of a bag; after a
-recorder crash, what is readable and how much was lost (``--repair`` makes such a bag whole for
-every rosbag2 reader). No ROS needed."""
+"""``python -m nf_bags.info BAG [--json] [--repair [--output DIR]]``: topics, counts, files, chunks of a
+bag; after a recorder crash or damage, what is readable, what was skipped and how much was lost
+(``--repair`` writes a repaired copy that every rosbag2 reader opens; the original is never
+changed). No ROS needed.
+
+Exit codes: 0 closed cleanly (or ``--repair`` wrote a verified copy, or had nothing to repair),
+1 not closed (recorder died) or damaged, 2 not readable as a bag (missing path, sqlite3 bag,
+invalid metadata.yaml, a file it lists is missing) or the repair failed.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+from typing import Any
 
-from .bagfile import repair, scan
+from .bagfile import BagError, BagScan, repair, scan
+
+
+def as_json(result: BagScan) -> dict[str, Any]:
+    """The scan as plain data (``--json``)."""
+    window = result.loss_window()
+    return {
+        "state": result.state, "closed": result.closed, "counts": dict(result.counts),
+        "metadata_counts": result.metadata_counts, "lost": result.lost,
+        "lost_seconds_known": window[0] if window else 0.0, "loss_bound": result.loss_bound(),
+        "skipped": result.problems(),
+        "files": [{"path": str(f.path), "complete": f.complete, "damaged": f.damaged, "chunks": f.chunks,
+                   "size": f.size, "torn_bytes": f.torn, "messages": f.messages,
+                   "summary_messages": f.summary_messages,
+                   "damage": [{"offset": d.offset, "length": d.length, "what": d.what,
+                               "messages_lost": d.messages_lost, "suspect_messages": d.suspect_messages}
+                              for d in f.damage]} for f in result.files],
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Print the report; exit code 0 for a cleanly closed bag, 1 for one whose recorder died."""
-    parser = argparse.ArgumentParser(prog="python -m nf_bags.info", description=__doc__.splitlines()[0])
+    """Print the report; exit code as in the module docstring."""
+    parser = argparse.ArgumentParser(prog="python -m nf_bags.info", description=__doc__.splitlines()[0],
+                                     epilog="exit codes: 0 closed cleanly (or repaired copy written), 1 not closed "
+                                            "or damaged, 2 not a readable bag or repair failed")
     parser.add_argument("bag", help="bag directory (or one .mcap file)")
     parser.add_argument("--json", action="store_true", help="machine-readable output")
     parser.add_argument("--repair", action="store_true",
-                        help="rewrite files without a summary from their readable part and fix metadata.yaml, "
-                             "so that every rosbag2 reader opens the bag (reports the state before the repair)")
+                        help="write a repaired copy (<bag>.repaired, or <name>.repaired.mcap) holding every readable "
+                             "message, each file whole with its summary, and a fixed metadata.yaml; the original "
+                             "is left as it is. Reports the original and what the copy dropped")
+    parser.add_argument("--output", help="with --repair: where to write the copy (must not exist)")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
-    result = repair(args.bag) if args.repair else scan(args.bag)
+    if args.output and not args.repair:
+        parser.error("--output needs --repair")
+    try:
+        if args.repair:
+            fixed = repair(args.bag, args.output)
+            result = fixed.before
+        else:
+            fixed = None
+            result = scan(args.bag)
+    except BagError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"error: {exc.strerror or exc}: {exc.filename or args.bag}", file=sys.stderr)
+        return 2
     if args.json:
-        window = result.loss_window()
-        print(json.dumps({
-            "closed": result.closed, "counts": dict(result.counts), "metadata_counts": result.metadata_counts,
-            "lost": result.lost, "lost_seconds_known": window[0] if window else 0.0,
-            "lost_seconds_more_at_most": window[1] if window else 0.0,
-            "files": [{"path": str(f.path), "complete": f.complete, "chunks": f.chunks, "size": f.size,
-                       "torn_bytes": f.torn_bytes, "messages": sum(f.counts.values())} for f in result.files],
-        }, indent=1))
+        out = as_json(result)
+        if fixed is not None:
+            out["repair"] = {"output": str(fixed.output) if fixed.output else None, "messages": fixed.messages,
+                             "dropped": fixed.dropped}
+        print(json.dumps(out, indent=1))
     else:
         print(result.report())
-    return 0 if result.closed else 1
+        if fixed is not None:
+            print(fixed.report())
+    if fixed is not None:
+        return 0
+    return 0 if result.closed or result.state == "repaired" else 1
 
 
 if __name__ == "__main__":

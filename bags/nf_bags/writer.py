@@ -1,10 +1,13 @@
 """ROS-free core of the recorder: writes a rosbag2 bag (a directory with ``metadata.yaml`` and
 ``<name>_<i>.mcap`` files) from serialized (CDR) messages, with the ``mcap`` library.
 
-- Chunks: zstd-compressed, closed after ``chunk_bytes`` of messages or ``chunk_seconds`` of wall
-  time (``tick`` closes a due chunk even when no message arrives). Each closed chunk is written
+- Chunks: zstd-compressed, closed after ``chunk_bytes`` of messages or ``chunk_seconds``: a
+  message received ``chunk_seconds`` or more after the open chunk's first message closes that
+  chunk before it is added (so a chunk never spans ``chunk_seconds`` of receive time, whatever the
+  timers do), and ``tick`` closes a due chunk when no message arrives. Each closed chunk is written
   and flushed to the OS at once, so a killed recorder (``kill -9``) leaves every closed chunk
-  readable; only the open one (at most ``chunk_seconds``) is lost.
+  readable; only the open one (less than ``chunk_seconds`` of messages) is lost, plus what the
+  recorder had not yet taken from its queues.
 - Splits: a new ``.mcap`` file after ``split_bytes`` or ``split_seconds`` (0: never).
 - ``metadata.yaml`` (rosbag2 version 9) is written at start, when a topic is added, every
   ``metadata_seconds`` and at close. It counts every message received so far, so after a crash
@@ -31,10 +34,12 @@ from .schemas import MESSAGE_ENCODING, SCHEMA_ENCODING, message_definition
 
 METADATA = "metadata.yaml"
 ROSBAG2_VERSION = 9
-STATE_KEY = "nf_bags.state"  # custom_data: recording | closed
+STATE_KEY = "nf_bags.state"  # custom_data: recording | closed (| split: a file closed for a split | repaired)
 UPDATED_KEY = "nf_bags.updated_ns"  # custom_data: wall time (ns since epoch) of the last metadata update
 CHUNK_SECONDS_KEY = "nf_bags.chunk_seconds"
 METADATA_SECONDS_KEY = "nf_bags.metadata_seconds"
+PENDING_SINCE_KEY = "nf_bags.pending_since_ns"  # custom_data: log time of the open chunk's first message
+INFINITE_DURATION = {"sec": 9223372036, "nsec": 854775807}  # RMW_DURATION_INFINITE, as rosbag2 Jazzy writes it
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 _Dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 
@@ -93,8 +98,8 @@ def qos_dict(qos: Any) -> dict[str, Any]:
 
     def duration(value: Any) -> dict[str, int]:
         ns = int(getattr(value, "nanoseconds", 0))
-        if ns >= 2**63 - 1 or ns < 0 or ns == 0x7FFFFFFFFFFFFFFF:
-            return {"sec": 2147483647, "nsec": 4294967295}  # "infinite", as rosbag2 writes it
+        if ns >= 2**63 - 1 or ns < 0:
+            return dict(INFINITE_DURATION)
         return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
 
     return {
@@ -112,6 +117,7 @@ class BagWriter:
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.config = config or WriterConfig()
         self.config.check()
+        self._chunk_ns = int(self.config.chunk_seconds * 1e9)
         self.path = Path(path)
         if self.path.exists() and any(self.path.iterdir()):
             raise FileExistsError(f"bag directory {self.path} exists and is not empty")
@@ -124,7 +130,8 @@ class BagWriter:
         self._mcap: McapWriter | None = None
         self._stream: Any = None
         self._pending_bytes = 0  # message bytes in the open chunk
-        self._chunk_opened = clock()
+        self._pending_since: int | None = None  # log time (ns) of the open chunk's first message
+        self._chunk_opened = clock()  # clock() at the open chunk's first message (or last flush)
         self._metadata_written = clock()
         self.chunks = 0  # chunks written to disk
         self.closed = False
@@ -145,16 +152,17 @@ class BagWriter:
         for topic in self.topics.values():
             self._register(topic)
 
-    def _close_file(self) -> None:
+    def _close_file(self, final: bool = False) -> None:
         assert self._mcap is not None
-        self._mcap.add_metadata("rosbag2", {"serialized_metadata": yaml.dump(
-            self._metadata()["rosbag2_bagfile_information"], Dumper=_Dumper, sort_keys=False),
-            "ros_distro": "jazzy"})
+        info = self._metadata(state="closed" if final else "split")["rosbag2_bagfile_information"]
+        self._mcap.add_metadata("rosbag2", {"serialized_metadata": yaml.dump(info, Dumper=_Dumper, sort_keys=False),
+                                            "ros_distro": "jazzy"})
         self._mcap.finish()
         self._stream.close()
         self._mcap = None
         self.chunks += 1 if self._pending_bytes else 0
         self._pending_bytes = 0
+        self._pending_since = None
 
     def _register(self, topic: Topic) -> None:
         assert self._mcap is not None
@@ -190,6 +198,11 @@ class BagWriter:
             self._close_file()
             self._open_file()
             current = self.files[-1]
+        elif self._pending_since is not None and log_time - self._pending_since >= self._chunk_ns:
+            self.flush()  # the open chunk would span chunk_seconds: write it first
+        if self._pending_since is None:
+            self._pending_since = log_time
+            self._chunk_opened = self._clock()
         assert self._mcap is not None
         self._mcap.add_message(self._channel_ids[topic], log_time, data,
                                log_time if publish_time is None else publish_time, sequence & 0xFFFFFFFF)
@@ -215,6 +228,7 @@ class BagWriter:
             self._mcap.flush()
             self.chunks += 1
             self._pending_bytes = 0
+        self._pending_since = None
         self._chunk_opened = self._clock()
 
     def tick(self) -> None:
@@ -231,7 +245,7 @@ class BagWriter:
         """Write the last chunk, the summary and the final metadata.yaml."""
         if self.closed:
             return
-        self._close_file()
+        self._close_file(final=True)
         self.closed = True
         self.write_metadata()
 
@@ -241,7 +255,7 @@ class BagWriter:
         """Messages written (or waiting in the open chunk)."""
         return sum(t.count for t in self.topics.values())
 
-    def _metadata(self) -> dict[str, Any]:
+    def _metadata(self, state: str | None = None) -> dict[str, Any]:
         starts = [f.start for f in self.files if f.start is not None]
         start = min(starts) if starts else 0
         end = max((f.end for f in self.files), default=0)
@@ -251,9 +265,11 @@ class BagWriter:
         topics = [{"topic_metadata": {"name": t.name, "type": t.type, "serialization_format": MESSAGE_ENCODING,
                                       "offered_qos_profiles": t.qos, "type_description_hash": t.type_hash},
                    "message_count": t.count} for t in self.topics.values()]
-        custom = {STATE_KEY: "closed" if self.closed else "recording", UPDATED_KEY: str(time.time_ns()),
+        custom = {STATE_KEY: state or ("closed" if self.closed else "recording"), UPDATED_KEY: str(time.time_ns()),
                   CHUNK_SECONDS_KEY: str(self.config.chunk_seconds),
                   METADATA_SECONDS_KEY: str(self.config.metadata_seconds)}
+        if self._pending_since is not None and not self.closed:
+            custom[PENDING_SINCE_KEY] = str(self._pending_since)
         return {"rosbag2_bagfile_information": {
             "version": ROSBAG2_VERSION, "storage_identifier": "mcap",
             "relative_file_paths": [f.path.name for f in self.files],
