@@ -24,7 +24,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from .bagfile import iter_raw, load_metadata
+from .bagfile import BagError, iter_raw, load_metadata
 from .record import message_class
 
 
@@ -53,11 +53,21 @@ def play(node: Any, bag: str | Path, rate: float | None, topics: list[str] | Non
     """Publish the bag's messages with ``node``; ``rate`` None = as fast as possible. Returns the count."""
     wanted = {node.resolve_topic_name(t) for t in topics} if topics else None
     qos = recorded_qos(bag)
+    types: dict[str, str] = {}
+    for raw in iter_raw(bag, wanted):  # one pass to learn the types (cheap next to the replay)
+        types.setdefault(raw.topic, raw.type)
+    classes, bad = {}, []
+    for topic, msg_type in types.items():
+        try:
+            classes[topic] = message_class(msg_type)
+        except (ValueError, LookupError) as exc:
+            bad.append(f"{topic}: {exc}")
+    if bad:
+        raise ValueError("cannot replay these topics (leave them out with --topics): " + "; ".join(bad))
     publishers: dict[str, Any] = {}
-    for raw in iter_raw(bag, wanted):  # one pass to create publishers (cheap next to the replay)
-        if raw.topic not in publishers:
-            profile = qos.get(raw.topic, QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
-            publishers[raw.topic] = node.create_publisher(message_class(raw.type), raw.topic, profile)
+    for topic, cls in classes.items():
+        profile = qos.get(topic, QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+        publishers[topic] = node.create_publisher(cls, topic, profile)
     deadline = time.monotonic() + wait
     while time.monotonic() < deadline and not stop.is_set():
         if all(p.get_subscription_count() > 0 for p in publishers.values()):
@@ -104,7 +114,11 @@ def main(argv: list[str] | None = None) -> int:
     node = rclpy.create_node("nf_bag_player")
     try:
         t0 = time.monotonic()
-        count = play(node, args.bag, None if args.fast else args.rate, args.topics, args.wait, stop)
+        try:
+            count = play(node, args.bag, None if args.fast else args.rate, args.topics, args.wait, stop)
+        except (BagError, ValueError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         node.get_logger().info(f"published {count} messages in {time.monotonic() - t0:.2f} s")
         return 0
     finally:

@@ -9,6 +9,7 @@ message's fields as attributes (``msg.header.stamp.sec``, ``chunk.reward``).
 from __future__ import annotations
 
 import dataclasses
+import sys
 from collections import defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -42,16 +43,21 @@ class Decoder:
     """CDR -> message objects from the schemas in the bag (one decoder per schema)."""
 
     def __init__(self) -> None:
-        self._factory = DecoderFactory()
-        self._by_schema: dict[tuple[str, bytes], Any] = {}
+        self._by_schema: dict[tuple[str, str, str, bytes], Any] = {}
 
     def __call__(self, raw: RawMessage) -> Any:
-        key = (raw.schema.name, raw.schema.data)
+        schema = raw.schema
+        if schema is None:
+            raise ValueError(f"cannot decode {raw.topic}: its channel names no schema (or the schema record is lost)")
+        key = (raw.channel.message_encoding, schema.encoding, schema.name, schema.data)
         fn = self._by_schema.get(key)
         if fn is None:
-            fn = self._factory.decoder_for(raw.channel.message_encoding, raw.schema)
+            # a factory per schema: DecoderFactory caches by schema id, and ids restart in every file
+            fn = DecoderFactory().decoder_for(raw.channel.message_encoding, schema)
             if fn is None:
-                raise ValueError(f"cannot decode {raw.topic}: schema encoding {raw.schema.encoding!r}")
+                raise ValueError(f"cannot decode {raw.topic}: message encoding {raw.channel.message_encoding!r} with "
+                                 f"schema encoding {schema.encoding!r} (readable: message encoding 'cdr' with "
+                                 f"schema encoding 'ros2msg')")
             self._by_schema[key] = fn
         return fn(raw.data)
 
@@ -278,9 +284,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("bag")
     parser.add_argument("--plot", type=Path, help="write a PNG of joint trajectories and task status")
     args = parser.parse_args(argv)
-    print(json.dumps(summarize(args.bag), indent=1))
-    if args.plot:
-        print(f"plot: {plot_run(args.bag, args.plot)}")
+    from .bagfile import BagError
+
+    try:
+        print(json.dumps(summarize(args.bag), indent=1))
+        if args.plot:
+            print(f"plot: {plot_run(args.bag, args.plot)}")
+    except (BagError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -44,9 +44,23 @@ class RecorderOptions:
 
 
 def message_class(msg_type: str) -> type:
-    """The generated Python class of ``pkg/msg/Type``."""
-    package, kind, name = msg_type.split("/")
-    return getattr(importlib.import_module(f"{package}.{kind}"), name)
+    """The generated Python class of ``pkg/msg/Type`` (``pkg/Type`` is read as ``pkg/msg/Type``);
+    ``ValueError`` for a malformed name, ``LookupError`` for a type that is not installed."""
+    parts = str(msg_type).split("/")
+    if len(parts) == 2:
+        parts = [parts[0], "msg", parts[1]]
+    if len(parts) != 3 or not all(p.isidentifier() for p in parts) or parts[1] != "msg":
+        raise ValueError(f"not a message type name: {msg_type!r} (expected pkg/msg/Type)")
+    package, kind, name = parts
+    try:
+        module = importlib.import_module(f"{package}.{kind}")
+    except ImportError:
+        raise LookupError(f"message type {msg_type} is not installed (no Python package {package!r}: source the "
+                          f"workspace that builds it)") from None
+    cls = getattr(module, name, None)
+    if not isinstance(cls, type):
+        raise LookupError(f"message type {msg_type} is not installed ({package} has no message {name!r})")
+    return cls
 
 
 def _hidden(topic: str) -> bool:

@@ -9,6 +9,7 @@ states it produces are compared with the recorded ``joint_states``. ROS-free.
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,10 +55,14 @@ def resimulate(bag: str | Path, start_ns: int | None = None, task: str | None = 
         raise ValueError("the bag has no reset state (zero velocity and effort) to start from")
     start_ns = resets[0] if start_ns is None else int(start_ns)
     if start_ns not in resets:
-        raise ValueError(f"no recorded reset state at {start_ns} ns; reset states: {resets[:10]}...")
+        raise ValueError(f"no recorded reset state at {start_ns} ns; reset states: {resets[:10]}"
+                         f"{'...' if len(resets) > 10 else ''}")
     end_ns = next((r for r in resets if r > start_ns), None)
     index = {int(s): i for i, s in enumerate(traj.stamp_ns)}
     i = index[start_ns]
+    if len(traj.names) != 7 or traj.q.shape[1] != 7:
+        raise ValueError(f"the recorded joint states have {len(traj.names)} joints; re-simulation needs the "
+                         "7-joint arm")
     bridge = SimBridge(InsertionEnv(task or recorded_task(bag) or "gear"),
                        BridgeConfig(mode="lockstep", driver_gravity_compensation=driver_gravity_compensation))
     bridge.reset(q=traj.q[i])
@@ -88,8 +93,24 @@ def resimulate(bag: str | Path, start_ns: int | None = None, task: str | None = 
     return ResimResult(start_ns, steps, float(errors[0]), float(errors[1]), float(errors[2]), reason)
 
 
+def start_of_episode(bag: str | Path, episode: int) -> int:
+    """Stamp (ns) of the reset state that starts ``episode`` (0: the first reset state in the bag);
+    ``ValueError`` naming how many there are if it does not exist."""
+    starts = episode_starts(bag)
+    if not starts:
+        raise ValueError(f"{bag} has no reset state (a joint state with zero velocity and effort on "
+                         f"/joint_states): it cannot be re-simulated")
+    if not 0 <= episode < len(starts):
+        raise ValueError(f"episode {episode} does not exist: {bag} has {len(starts)} reset states "
+                         f"(--episode 0..{len(starts) - 1})")
+    return starts[episode]
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Re-simulate one recorded episode and print the largest deviation; exit 1 above ``--tol``."""
+    """Re-simulate one recorded episode and print the largest deviation; exit 1 above ``--tol``,
+    2 if the bag cannot be re-simulated (no such episode or reset state, no lockstep commands)."""
+    from .bagfile import BagError
+
     parser = argparse.ArgumentParser(prog="python -m nf_bags.resim", description=main.__doc__)
     parser.add_argument("bag")
     group = parser.add_mutually_exclusive_group()
@@ -99,8 +120,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--driver-gravity-compensation", action="store_true")
     parser.add_argument("--tol", type=float, default=1e-9)
     args = parser.parse_args(argv)
-    start = args.start_ns if args.start_ns is not None else episode_starts(args.bag)[args.episode]
-    r = resimulate(args.bag, start, args.task, args.driver_gravity_compensation)
+    try:
+        start = args.start_ns if args.start_ns is not None else start_of_episode(args.bag, args.episode)
+        r = resimulate(args.bag, start, args.task, args.driver_gravity_compensation)
+    except (BagError, ValueError, KeyError, IndexError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if r.steps == 0:
+        print(f"error: nothing to re-simulate from {r.start_ns} ns: {r.stop_reason} (lockstep commands carry "
+              f"state_stamp_ns=<stamp> labels; a realtime recording has none)", file=sys.stderr)
+        return 2
     print(f"re-simulated {r.steps} steps from {r.start_ns} ns (stopped at {r.stop_reason}): "
           f"max |q error| {r.max_q_error:.3g} rad, |dq error| {r.max_dq_error:.3g} rad/s, "
           f"|torque error| {r.max_effort_error:.3g} Nm")
