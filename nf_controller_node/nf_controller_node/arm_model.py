@@ -22,22 +22,29 @@ class ArmModel:
         urdf_path: str | None = None,
         armature: np.ndarray | None = None,
         part: panda_spec.HeldPartInertia | None = panda_spec.GEAR_PART,
+        *,
+        joint_names: tuple[str, ...] = panda_spec.JOINT_NAMES,
+        finger_joint_names: tuple[str, ...] = panda_spec.FINGER_JOINT_NAMES,
+        hand_frame: str = panda_spec.HAND_FRAME,
     ) -> None:
         """``part``: mass, com_in_hand, inertia, tcp_in_hand of the held part (any object with these
-        attributes, e.g. the simulator's held-part description); None = empty hand, TCP at the gear's."""
+        attributes, e.g. the simulator's held-part description); None = empty hand, TCP at the gear's.
+        ``joint_names``, ``finger_joint_names``, ``hand_frame``: the names in another arm's URDF
+        (e.g. the FR3's ``fr3_joint1..7``, ``fr3_finger_joint1/2``, ``fr3_hand``); default the Panda's."""
         full = pin.buildModelFromUrdf(urdf_path or panda_spec.panda_urdf_path())
         q_full = pin.neutral(full)
         lock = []
-        for name in panda_spec.FINGER_JOINT_NAMES:
+        for name in finger_joint_names:
             jid = full.getJointId(name)
             q_full[full.joints[jid].idx_q] = panda_spec.FINGER_OPENING
             lock.append(jid)
         model = pin.buildReducedModel(full, lock, q_full)
         names = [model.names[i] for i in range(1, model.njoints)]
-        if names != list(panda_spec.JOINT_NAMES):
-            raise ValueError(f"unexpected joints in the URDF after locking fingers: {names}")
+        if names != list(joint_names):
+            raise ValueError(f"unexpected joints in the URDF after locking fingers: {names}, want {list(joint_names)}")
+        self.joint_names = tuple(names)
 
-        hand = model.frames[model.getFrameId(panda_spec.HAND_FRAME)]
+        hand = model.frames[model.getFrameId(hand_frame)]
         joint7 = hand.parentJoint
         jMhand = hand.placement  # hand frame in joint-7 frame
         if part is not None and part.mass > 0.0:
@@ -49,7 +56,7 @@ class ArmModel:
         tcp_in_hand = panda_spec.TCP_IN_HAND if part is None else part.tcp_in_hand
         tcp = pin.SE3(np.eye(3), np.asarray(tcp_in_hand, float))
         self.tcp_id = model.addFrame(
-            pin.Frame(panda_spec.TCP_FRAME, joint7, model.getFrameId(panda_spec.HAND_FRAME),
+            pin.Frame(panda_spec.TCP_FRAME, joint7, model.getFrameId(hand_frame),
                       jMhand * tcp, pin.FrameType.OP_FRAME)
         )
         arm = panda_spec.JOINT_ARMATURE if armature is None else np.asarray(armature, dtype=float)

@@ -1,0 +1,419 @@
+"""libfranka's 1 kHz torque loop hosting the flow controller (``ControllerHost``). ROS-free.
+
+Per tick, on the driver thread::
+
+    host.service()                    # posted work (policy swaps, episode starts) in the slack
+    state, _ = control.readOnce()     # blocks until the robot's next state
+    tau = host.tick(stamp, q, dq)     # the controller: always finite (flow or safe hold)
+    control.writeOnce(Torques(tau))   # the robot adds its own gravity torque
+    ... after the write: task depth from kinematics, reset progress, timing
+
+Nothing slow happens between ``readOnce`` returning and ``writeOnce``. ``DriverTiming`` measures
+that latency, the loop period and the cycles the robot reports as missed.
+
+Episodes (``begin_episode``) start with a reset *motion*: the stable controller itself (identity
+flow, ``reset_stiffness``/``reset_damping``) drives the TCP to ``start_position``; when it is there
+and still (``reset_tolerance``, ``reset_speed``, ``reset_settle`` ticks) the episode starts from
+the next state, with the torque rate limit in force. A reset that does not converge within
+``reset_timeout`` fails the episode and the arm is held.
+
+libfranka's exceptions (reflexes, network) end torque control: the running episode is aborted,
+the controller latches the safe hold, the error is kept for /diagnostics, and the loop waits.
+Only ``automatic_error_recovery`` (or ``request_recovery()`` by a person) restarts it.
+"""
+
+from __future__ import annotations
+
+import array
+import math
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from nf_controller_node.episode import EpisodeRun
+from nf_controller_node.flow_eval import FlowEvaluator
+from nf_controller_node.flow_spec import FlowArchitecture
+from nf_controller_node.host import ControllerHost
+from nf_controller_node.policy_params import PolicyParameters
+
+LATE_AFTER = 0.001  # s: a tick whose read -> write latency exceeds this missed the robot's cycle
+GRAVITY_MARGIN = 0.5  # Nm kept free below a joint's limit on top of the robot's gravity torque
+
+
+@dataclass
+class DriverConfig:
+    """Settings of the driver loop. Units: m, s, N/m, N s/m."""
+
+    start_position: np.ndarray = field(default_factory=lambda: np.array([0.5, 0.0, 0.35]))  # TCP, base frame
+    reset_timeout: float = 20.0  # s a reset motion may take
+    reset_tolerance: float = 0.002  # m from start_position
+    reset_speed: float = 0.005  # m/s, TCP speed below which the arm counts as still
+    reset_settle: int = 200  # ticks in a row within tolerance and still
+    reset_stiffness: float = 200.0  # N/m of the reset motion's spring
+    reset_damping: float = 40.0  # N s/m
+    fixture_position: np.ndarray = field(default_factory=lambda: np.array([0.5, 0.0, 0.07]))  # mouth, base frame
+    fixture_radius: float = 0.005  # m: laterally within this of the fixture axis counts as "inside"
+    success_depth: float = 0.016  # m below the mouth
+    automatic_error_recovery: bool = False  # restart after a libfranka error without a person
+    recovery_wait: float = 1.0  # s before an automatic recovery
+    goal: np.ndarray | None = None  # m: the x_ref an episode's policy must have (None: any)
+    goal_tolerance: float = 0.001  # m
+    gravity_headroom: bool = True  # clamp each command to limit - |g(q)| (the robot adds g on top)
+    keep_timing: bool = False  # keep every latency and period (benchmark)
+
+    def check(self) -> None:
+        """Raise ``ValueError`` naming the first bad value."""
+        for name in ("start_position", "fixture_position"):
+            v = np.asarray(getattr(self, name), dtype=float)
+            if v.shape != (3,) or not np.all(np.isfinite(v)):
+                raise ValueError(f"{name} must be 3 finite values (m), got {getattr(self, name)}")
+            setattr(self, name, v)
+        for name in ("reset_timeout", "reset_tolerance", "reset_speed", "reset_stiffness", "reset_damping",
+                     "fixture_radius", "success_depth", "recovery_wait"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} must be > 0, got {value}")
+        if self.goal is not None:
+            goal = np.asarray(self.goal, dtype=float)
+            if goal.shape != (3,) or not np.all(np.isfinite(goal)):
+                raise ValueError(f"goal must be 3 finite values (m) or empty, got {self.goal}")
+            self.goal = goal
+        if self.reset_settle < 1:
+            raise ValueError(f"reset_settle must be >= 1, got {self.reset_settle}")
+
+
+class DriverTiming:
+    """Timing of the torque loop on its own clock (``time.perf_counter``)."""
+
+    def __init__(self, keep_all: bool = False) -> None:
+        self.latency = array.array("d")  # readOnce returned -> writeOnce returned, s (keep_all)
+        self.periods = array.array("d")  # readOnce return to the next one, s (keep_all)
+        self._keep = keep_all
+        self._window: list[float] = []
+        self._last_read: float | None = None
+        self.ticks = 0
+        self.late = 0  # latency above LATE_AFTER
+        self.run = 0
+        self.longest_run = 0  # longest run of late ticks
+        self.missed_cycles = 0  # robot cycles between two reads beyond the first (readOnce's duration)
+
+    def tick(self, read: float, written: float, robot_dt: float) -> None:
+        """One tick: state read at ``read``, command written at ``written`` (s), robot time since
+        the previous read ``robot_dt`` (s)."""
+        latency = written - read
+        if self._last_read is not None and self._keep:
+            self.periods.append(read - self._last_read)
+        self._last_read = read
+        self.ticks += 1
+        if self._keep:
+            self.latency.append(latency)
+        if len(self._window) < 100_000:
+            self._window.append(latency)
+        if robot_dt > 0.0015:
+            self.missed_cycles += int(round(robot_dt / 0.001)) - 1
+        if latency > LATE_AFTER:
+            self.late += 1
+            self.run += 1
+            self.longest_run = max(self.longest_run, self.run)
+        else:
+            self.run = 0
+
+    def restart(self) -> None:
+        """A new torque-control session: the next period is not measured across the gap."""
+        self._last_read = None
+
+    def take_window(self) -> list[float]:
+        """Latencies (s) since the last call."""
+        window, self._window = self._window, []
+        return window
+
+    def counters(self) -> dict[str, int]:
+        """Counts for diagnostics and the benchmark."""
+        return {"ticks": self.ticks, "late_ticks": self.late, "longest_late_run": self.longest_run,
+                "missed_cycles": self.missed_cycles}
+
+
+def reset_policy(start: np.ndarray, stiffness: float, damping: float) -> PolicyParameters:
+    """The reset motion's policy: identity flow (all weights zero), S = stiffness I, D = damping I,
+    x_ref = ``start``. Stable like every policy of the controller."""
+    arch = FlowArchitecture(dim=3, n_flow=1, n_hidden=4, activation="gelu")
+    return PolicyParameters(arch, np.zeros(arch.n_params), np.zeros(1), stiffness * np.eye(3),
+                            damping * np.eye(3), np.asarray(start, dtype=float).copy())
+
+
+class _Reset:
+    """A reset motion in progress (driver thread only)."""
+
+    def __init__(self, run: EpisodeRun, future: Future, deadline: float, evaluator: FlowEvaluator) -> None:
+        self.run = run
+        self.future = future
+        self.deadline = deadline
+        self.evaluator = evaluator
+        self.saved_evaluator: Any = None
+        self.saved_idle = ""
+        self.settled = 0
+        self.error = math.inf  # m, last distance to the start
+
+
+class FrankaDriverLoop:
+    """Runs libfranka's torque loop with a ``ControllerHost``; see the module docstring.
+
+    ``robot``: a ``pylibfranka.Robot`` (or anything with ``start_torque_control``, ``read_once``,
+    ``stop``, ``automatic_error_recovery``); ``tcp(q)``: the TCP position (m) for joint positions.
+    ``after_tick(q, dq, tau, stamp_ns)`` runs after each write (keep it to a few microseconds).
+    """
+
+    def __init__(self, robot: Any, host: ControllerHost, tcp: Callable[[np.ndarray], np.ndarray],
+                 config: DriverConfig, torque_factory: Callable[[list[float]], Any],
+                 exceptions: tuple[type[BaseException], ...] = (RuntimeError,),
+                 after_tick: Callable[[np.ndarray, np.ndarray, np.ndarray, int], None] | None = None) -> None:
+        config.check()
+        self.robot = robot
+        self.host = host
+        self.tcp = tcp
+        self.config = config
+        self.torques = torque_factory
+        self.franka_errors = exceptions
+        self.after_tick = after_tick
+        self.timing = DriverTiming(config.keep_timing)
+        self.law = host.loop.controller.law
+        self.base_limits = self.law.torque_limits.copy()
+        self.exceptions = 0  # libfranka exceptions caught
+        self.last_error = ""  # text of the latest one ("" while none)
+        self.recoveries = 0
+        self.sessions = 0  # torque-control sessions started
+        self.in_error = False
+        self.depth = float("nan")
+        self.success = False
+        self.x = np.full(3, np.nan)  # TCP at the last state
+        self._reset: _Reset | None = None
+        self._recover = threading.Event()
+        self.resets_done = 0
+        self.resets_failed = 0
+        self.last_reset = ""  # outcome of the latest reset, for diagnostics
+
+    # ------------------------------------------------------------------ episodes (any thread)
+    def begin_episode(self, seed: int, run: EpisodeRun) -> Future:
+        """Move to ``start_position`` with the stable controller, then start ``run`` (``seed`` is
+        unused: a robot starts where the reset motion brings it). The future is done when the
+        episode runs, or holds why the reset failed."""
+        done: Future = Future()
+        params = reset_policy(self.config.start_position, self.config.reset_stiffness, self.config.reset_damping)
+        evaluator = self.host.loop.prepare_policy(params)  # the slow part, on the caller's thread
+
+        def start_reset() -> None:
+            loop = self.host.loop
+            if self.in_error:
+                raise RuntimeError(f"libfranka error, torque control stopped: {self.last_error}")
+            if loop.policy is None:
+                raise RuntimeError("no policy installed")
+            if loop.fault:
+                raise RuntimeError(f"safe hold: {loop.fault}")
+            goal = self.config.goal
+            if goal is not None and np.linalg.norm(loop.policy.x_ref - goal) > self.config.goal_tolerance:
+                raise RuntimeError(f"the policy's x_ref {loop.policy.x_ref.tolist()} is not the goal parameter "
+                                   f"{goal.tolist()} (tolerance {self.config.goal_tolerance * 1e3:g} mm): publish "
+                                   "it with deploy_policy --x-ref, or change the goal")
+            if self._reset is not None:
+                raise RuntimeError("a reset is already running")
+            reset = _Reset(run, done, time.monotonic() + self.config.reset_timeout, evaluator)
+            ctrl = loop.controller
+            reset.saved_evaluator, reset.saved_idle = ctrl.evaluator, loop.config.idle_mode
+            ctrl.set_evaluator(reset.evaluator)
+            loop.config.idle_mode = "policy"
+            self._reset = reset
+
+        posted = self.host.call(start_reset)
+
+        def failed_to_start(f: Future) -> None:
+            exc = f.exception()
+            if exc is not None and not done.done():
+                done.set_exception(exc)
+
+        posted.add_done_callback(failed_to_start)
+        return done
+
+    def _end_reset(self, problem: str) -> None:
+        """Driver thread: restore the controller's policy; start the episode or fail the future."""
+        reset, self._reset = self._reset, None
+        if reset is None:
+            return
+        loop = self.host.loop
+        ctrl = loop.controller
+        if ctrl.evaluator is reset.evaluator:
+            ctrl.set_evaluator(reset.saved_evaluator)
+        loop.config.idle_mode = reset.saved_idle
+        if not problem and reset.future.cancelled():
+            problem = "canceled"
+        if not problem:
+            try:
+                self.host.start_episode(reset.run, self.host.last_stamp_ns + 1, world_was_reset=False)
+            except ValueError as exc:
+                problem = str(exc)
+        self.last_reset = problem or f"reached the start ({reset.error * 1e3:.2f} mm)"
+        if problem:
+            self.resets_failed += 1
+            if not reset.future.done():
+                reset.future.set_exception(RuntimeError(f"reset motion: {problem}"))
+        else:
+            self.resets_done += 1
+            if not reset.future.done():
+                reset.future.set_result(None)
+
+    def _reset_progress(self, x: np.ndarray, now: float) -> None:
+        reset = self._reset
+        loop = self.host.loop
+        ctrl = loop.controller
+        if ctrl.evaluator is not reset.evaluator:  # a policy arrived and was installed meanwhile
+            reset.saved_evaluator = ctrl.evaluator
+            ctrl.set_evaluator(reset.evaluator)
+        if loop.fault:
+            self._end_reset(f"safe hold: {loop.fault}")
+            return
+        if reset.future.cancelled():
+            self._end_reset("canceled")
+            return
+        reset.error = float(np.linalg.norm(x - self.config.start_position))
+        speed = float(np.linalg.norm(ctrl.xdot))
+        if reset.error < self.config.reset_tolerance and speed < self.config.reset_speed:
+            reset.settled += 1
+            if reset.settled >= self.config.reset_settle:
+                self._end_reset("")
+                return
+        else:
+            reset.settled = 0
+        if now > reset.deadline:
+            self._end_reset(f"not at the start after {self.config.reset_timeout:.1f} s "
+                            f"({reset.error * 1e3:.1f} mm away, TCP speed {speed * 1e3:.1f} mm/s)")
+
+    # ------------------------------------------------------------------ task from kinematics
+    def task_of(self, x: np.ndarray) -> tuple[float, bool]:
+        """(insertion depth in m, success) of a TCP at ``x`` relative to the fixture mouth."""
+        c = self.config
+        f = c.fixture_position
+        if math.hypot(x[0] - f[0], x[1] - f[1]) >= c.fixture_radius:
+            return 0.0, False
+        depth = max(float(f[2] - x[2]), 0.0)
+        return depth, depth >= c.success_depth
+
+    # ------------------------------------------------------------------ the loop
+    def request_recovery(self) -> None:
+        """A person cleared the robot's error (e.g. via the ~/recover service): restart control."""
+        self._recover.set()
+
+    def run(self, stop: threading.Event) -> None:
+        """Torque control until ``stop`` is set (call on the driver thread). A libfranka error ends
+        a session; see the module docstring for what follows."""
+        while not stop.is_set():
+            try:
+                self._session(stop)
+            except self.franka_errors as exc:
+                self._on_franka_error(exc)
+                if not self._wait_for_recovery(stop):
+                    return
+
+    def _session(self, stop: threading.Event) -> None:
+        host, loop = self.host, self.host.loop
+        ctrl = loop.controller
+        control = self.robot.start_torque_control()
+        self.sessions += 1
+        self.in_error = False
+        self.timing.restart()
+        ctrl.reset_rate_limit(np.zeros(loop.n))  # the robot gets no torque from us before the first write
+        timing, cfg, tcp = self.timing, self.config, self.tcp
+        arm, limits, law_limits = ctrl.arm, self.base_limits, self.law.torque_limits
+        headroom = cfg.gravity_headroom
+        perf = time.perf_counter
+        make = self.torques
+        after = self.after_tick
+        while not stop.is_set():
+            host.service()
+            state, duration = control.readOnce()
+            read = perf()
+            q = np.array(state.q)
+            dq = np.array(state.dq)
+            stamp_ns = int(state.time.to_sec() * 1e9 + 0.5)
+            tau = host.tick(stamp_ns, q, dq, time.monotonic())
+            control.writeOnce(make(tau.tolist()))
+            timing.tick(read, perf(), duration.to_sec())
+            # ---- after the write: the next state is ~1 ms away
+            if headroom:  # the robot adds g(q) to our command: keep |command + g| within the limit
+                np.subtract(limits, np.abs(arm.g), out=law_limits)
+                np.maximum(law_limits, GRAVITY_MARGIN, out=law_limits)
+                law_limits -= GRAVITY_MARGIN
+            x = tcp(q)
+            self.x = x
+            self.depth, self.success = self.task_of(x)
+            host.set_task(self.depth, self.success)
+            if self._reset is not None:
+                self._reset_progress(x, time.monotonic())
+            if after is not None:
+                after(q, dq, host.tau, stamp_ns)
+        # stop asked: finish the motion cleanly with a zero command
+        try:
+            state, _ = control.readOnce()
+            last = make([0.0] * loop.n)
+            last.motion_finished = True
+            control.writeOnce(last)
+        except self.franka_errors:
+            pass
+
+    def _on_franka_error(self, exc: BaseException) -> None:
+        """A reflex or a lost connection: torque control has ended. Abort, latch the hold, keep why."""
+        self.exceptions += 1
+        self.in_error = True
+        text = f"{type(exc).__name__}: {exc}"
+        try:
+            errors = self.robot.read_once().last_motion_errors
+            if errors:
+                text += f" (last motion errors: {errors})"
+        except self.franka_errors:
+            pass
+        self.last_error = text[:500]
+        loop = self.host.loop
+        if self._reset is not None:
+            self._end_reset(f"libfranka error: {self.last_error}")
+        if loop.episode is not None:
+            self.host.end_episode(f"aborted: libfranka error: {self.last_error}")
+        if not loop.controller.fault:  # hold after the restart until someone clears it
+            loop.controller.fault = f"libfranka error: {self.last_error}"[:300]
+            loop.faults += 1
+
+    def _wait_for_recovery(self, stop: threading.Event) -> bool:
+        """After an error: recover automatically (when configured) or wait for ``request_recovery``.
+        Posted work is still served meanwhile. False when ``stop`` was set."""
+        deadline = time.monotonic() + self.config.recovery_wait
+        while not stop.is_set():
+            self.host.service()
+            if self.config.automatic_error_recovery and time.monotonic() >= deadline:
+                break
+            if self._recover.wait(0.05):
+                break
+        if stop.is_set():
+            return False
+        self._recover.clear()
+        try:
+            self.robot.automatic_error_recovery()
+            self.recoveries += 1
+            ctrl = self.host.loop.controller
+            if self.config.automatic_error_recovery and ctrl.fault.startswith("libfranka error"):
+                self.host.loop.clear_fault()  # asked for: go on without a person
+        except self.franka_errors as exc:
+            self.exceptions += 1
+            self.last_error = f"recovery failed: {type(exc).__name__}: {exc}"[:500]
+        return True
+
+
+def summary_us(values: array.array | list[float]) -> dict[str, float]:
+    """count, p50/p99/p99.9/max of durations given in s, in microseconds."""
+    a = np.frombuffer(values, dtype=np.float64) if isinstance(values, array.array) else np.asarray(values, float)
+    if a.size == 0:
+        return {"count": 0, "p50_us": 0.0, "p99_us": 0.0, "p999_us": 0.0, "max_us": 0.0}
+    p50, p99, p999 = np.percentile(a, [50, 99, 99.9]) * 1e6
+    return {"count": int(a.size), "p50_us": float(p50), "p99_us": float(p99), "p999_us": float(p999),
+            "max_us": float(a.max() * 1e6)}
