@@ -48,6 +48,13 @@ def test_mirrored_draws_and_their_controller_parameters():
     assert np.all(np.linalg.eigvalsh(p.stiffness) > 0) and np.all(np.linalg.eigvalsh(p.damping) > 0)
 
 
+def test_decay_scales_every_std():
+    _, explorer = _policy(flow_sigma=0.01)
+    before = explorer.sigma().detach().clone()
+    explorer.decay(0.5)
+    torch.testing.assert_close(explorer.sigma().detach(), 0.5 * before)
+
+
 def test_paired_advantages():
     adv = paired_advantages(np.array([3.0, 1.0, 0.0, 4.0, 9.0]))
     np.testing.assert_allclose(adv / adv[0], [1.0, -1.0, -2.0, 2.0, 0.0])

@@ -101,6 +101,9 @@ class TrainConfig:
     """exploration=params: Adam step size of the parameter-space mean, in units of its exploration std."""
     param_sigma_lr: float = 0.05
     """exploration=params: Adam step size of the exploration log-stds (0: the stds stay fixed)."""
+    param_sigma_decay: float = 1.0
+    """exploration=params: factor on the exploration stds after every update (1: none), so the rollouts
+    come closer to the learned controller as training goes on."""
     mlp_hidden: int = 64
     """MLP policy: units per hidden layer (two hidden layers)."""
     mlp_activation: str = "tanh"
@@ -175,6 +178,8 @@ class TrainConfig:
         _non_negative("param_sigma_flow", self.param_sigma_flow)
         _positive("param_lr", self.param_lr)
         _non_negative("param_sigma_lr", self.param_sigma_lr)
+        if not 0.0 < self.param_sigma_decay <= 1.0:
+            raise ValueError(f"param_sigma_decay must be in (0, 1], got {self.param_sigma_decay}")
         if self.exploration == "params" and self.gains == "fixed" and self.param_sigma_flow == 0.0:
             raise ValueError("exploration=params needs something to explore: gains=learned or param_sigma_flow > 0")
         _positive("sigma_init", self.sigma_init)

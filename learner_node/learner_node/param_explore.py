@@ -103,6 +103,13 @@ class ParamExploration(nn.Module):
             changes["weights"] = np.asarray(theta[self.n_gain :], dtype=np.float64).copy()
         return dataclasses.replace(base, **changes)
 
+    def decay(self, factor: float) -> None:
+        """Multiply every exploration std by ``factor``."""
+        if factor != 1.0:
+            with torch.no_grad():
+                self.log_sigma_gains.add_(math.log(factor))
+                self.log_sigma_flow.add_(math.log(factor))
+
     def log_prob(self, theta: torch.Tensor) -> torch.Tensor:
         """Gaussian log-density of each row of ``theta`` (K, dim), differentiable in mu and the log-stds."""
         mu, sig = self.mean(), self.sigma()

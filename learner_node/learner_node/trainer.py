@@ -52,7 +52,7 @@ RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes"})
 # settings only the NF policy reads: an MLP run's checkpoint resumes whatever they are
 NF_ONLY = frozenset({"n_flow", "n_hidden", "activation", "flow_init", "stiffness", "damping", "stiffness_axial",
                      "damping_axial", "gains", "exploration", "param_sigma_gains", "param_sigma_flow", "param_lr",
-                     "param_sigma_lr"})
+                     "param_sigma_lr", "param_sigma_decay"})
 TIMING_KEYS = ("rollout_seconds", "update_seconds", "wall_seconds")
 
 
@@ -218,6 +218,7 @@ class Trainer:
                 raise ValueError("params exploration: every episode failed")
             stats = param_ppo_update(self.explorer, self.optimizer, self._pending, adv, self.cfg.update_epochs,
                                      self.cfg.clip_coef, self.cfg.target_kl)
+            self.explorer.decay(self.cfg.param_sigma_decay)
             self._pending = None
             decisions = sum(len(e.reward) for e in episodes)
         else:
