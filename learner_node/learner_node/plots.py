@@ -169,7 +169,7 @@ def plot_energy_landscape(policies: Mapping[str, object], trajectories: Mapping[
         # latent space
         ax = axes[1, c]
         y_ref = _phi(policy, x_ref)[0]
-        S = policy.S.detach().to(torch.float64).numpy()
+        S = policy.gains()[0].detach().to(torch.float64).numpy()
         ymin, ymax = y.reshape(-1, 2).min(axis=0), y.reshape(-1, 2).max(axis=0)
         pad = 0.05 * (ymax - ymin)
         y1 = np.linspace(ymin[0] - pad[0], ymax[0] + pad[0], grid)

@@ -449,7 +449,7 @@ exist; everything in the table is computed from them.
 
 _SHOWN = ("n_flow", "n_hidden", "flow_init", "stiffness", "stiffness_axial", "damping", "damping_axial",
           "episode_seconds", "decision_period", "rollouts_per_iter", "learning_rate", "target_kl", "start",
-          "mlp_hidden")
+          "mlp_hidden", "gains", "exploration", "param_sigma_gains", "param_lr", "param_sigma_lr", "param_sigma_decay")
 
 
 # ---------------------------------------------------------------------- CLI
