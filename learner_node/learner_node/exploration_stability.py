@@ -42,7 +42,7 @@ from .policy import NFPolicy
 from .trainer import EVAL_SEED_BASE, build_policy
 
 SCHEMES = ("none", "action", "params")
-DEFAULT_TOLERANCE = 1e-3  # J
+DEFAULT_TOLERANCE = 1e-6  # J: the controller's LyapunovMonitor's per-step integration tolerance
 
 
 @dataclass
@@ -192,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
             learned.flow.load_flat(policy.flow.to_flat())
             policy = learned
         explorer = ParamExploration(policy, cfg.param_sigma_gains, cfg.param_sigma_flow)
-    sigma = float(policy.std().mean()) if args.sigma is None else args.sigma
+    sigma = float(policy.std().detach().mean()) if args.sigma is None else args.sigma
     hold = cfg.decision_period if args.hold is None else args.hold
     rows = []
     for scheme in args.schemes.split(","):
