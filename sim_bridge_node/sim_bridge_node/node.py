@@ -47,7 +47,7 @@ from nf_controller_node import topics
 from nf_controller_node.host import ControllerHost
 from nf_controller_node.ros_runtime import declare_read_only, run_node
 from nf_controller_node.topics import parse_stamp_label
-from sim_bridge_node.bridge import ACCEPTED, BAD, STALE, BridgeConfig, SimBridge
+from sim_bridge_node.bridge import ACCEPTED, BridgeConfig, SimBridge
 from sim_bridge_node.composed import SimDriverLoop, latencies_us
 from sim_bridge_node.env import InsertionEnv
 from sim_bridge_node.response_timing import ResponseTiming, latency_summary
@@ -141,6 +141,7 @@ class SimBridgeNode(Node):
 
         self.resends = 0
         self.late_ticks = 0
+        self._stale_reported = 0
         self._last_publish = time.monotonic()
         self._last_tick = None
         self._window = (time.monotonic(), 0, 0.0)  # wall time, steps, sim time at the last report
@@ -203,14 +204,9 @@ class SimBridgeNode(Node):
     def _accept(self, msg: Float64MultiArray) -> bool:
         dims = msg.layout.dim
         answers = self._answers = parse_stamp_label(dims[0].label) if dims else None
-        outcome = self.bridge.accept_command(msg.data, time.monotonic(), answers)
-        if outcome == BAD:
-            self.get_logger().error(f"ignoring effort command: {self.bridge.last_error} "
-                                    f"({self.bridge.bad_commands} so far)", throttle_duration_sec=1.0)
-        elif outcome == STALE:
-            self.get_logger().warn(f"dropping a reply to an earlier state ({self.bridge.stale_commands} so far)",
-                                   throttle_duration_sec=1.0)
-        return outcome == ACCEPTED
+        # Rejections are only counted here (logging one costs more than accepting a command, even
+        # throttled): the diagnostics timer reports them.
+        return self.bridge.accept_command(msg.data, time.monotonic(), answers) == ACCEPTED
 
     def _on_tick(self) -> None:
         now = time.monotonic()
@@ -268,6 +264,13 @@ class SimBridgeNode(Node):
 
     def _publish_diagnostics(self) -> None:
         b = self.bridge
+        report = b.take_error_report()
+        if report:
+            self.get_logger().error(report)
+        if b.stale_commands != self._stale_reported:
+            self.get_logger().warn(f"dropped {b.stale_commands - self._stale_reported} replies to an earlier state "
+                                   f"({b.stale_commands} in all)")
+            self._stale_reported = b.stale_commands
         now = time.monotonic()
         t0, steps0, sim0 = self._window
         wall = max(now - t0, 1e-9)
