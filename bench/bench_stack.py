@@ -1,11 +1,13 @@
-"""Benchmark of the node stack over ROS 2: lockstep closed-loop rate between separate processes
-(sim_bridge + nf_controller, during the learner's episodes) and the wall time of one PPO iteration
-over ROS against the same iteration in process, in the same run.
+"""Benchmark of the node stack over ROS 2: lockstep closed-loop rate of the arm and its controller
+during the learner's episodes, composed in one process (``nf_sim_stack``, the default of
+``make run``) and as two processes over topics, and the wall time of one PPO iteration over ROS
+against the same iteration in process, all in the same run.
 
-Starts the three processes (own ROS_DOMAIN_ID, loopback only) ``--repeats`` times, each learner
-doing one iteration; then the floor of the runtime (``pingpong.py``: a bare rclpy round trip
-between two processes, no work) and the in-process trainer on the same settings. Writes
-``bench/results/stack.json``. Target (issue #6): lockstep >= 3000 steps/s.
+Starts the arm (composed, then separate) and the learner (own ROS_DOMAIN_ID, loopback only)
+``--repeats`` times each, every learner doing one iteration, interleaved; then the floor of the
+two-process runtime (``pingpong.py``: a bare rclpy round trip between two processes, no work) and
+the in-process trainer on the same settings. Writes ``bench/results/stack.json``. Target: lockstep
+>= 3000 steps/s (composed).
 Usage: python bench/bench_stack.py [--quick]
 """
 
@@ -28,15 +30,15 @@ CONFIG = REPO / "config" / "gear.yaml"
 TARGET_STEPS_PER_S = 3000.0
 
 
-def ros_iteration(rollouts: int, seconds: float, domain: int, workdir: Path) -> dict:
+def ros_iteration(rollouts: int, seconds: float, domain: int, workdir: Path, composed: bool) -> dict:
     """One PPO iteration over ROS; returns the learner's metrics row."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     params = ["--ros-args", "--params-file", str(CONFIG)]
+    lockstep = ["-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0"]
+    arm = [("nf_bringup.sim_stack", lockstep)] if composed else \
+        [("sim_bridge_node.node", []), ("nf_controller_node.node", lockstep)]
     procs = [subprocess.Popen([sys.executable, "-m", mod, *params, *extra], env=env, stdout=subprocess.DEVNULL,
-                              stderr=subprocess.STDOUT)
-             for mod, extra in (("sim_bridge_node.node", []),
-                                ("nf_controller_node.node", ["-p", "nf_controller:idle_mode:=pause",
-                                                             "-p", "nf_controller:max_consecutive_misses:=0"]))]
+                              stderr=subprocess.STDOUT) for mod, extra in arm]
     try:
         out = workdir / f"run{domain}"
         learner = subprocess.run(
@@ -75,13 +77,16 @@ def main() -> int:
     args = parser.parse_args()
     rollouts, seconds, repeats = (3, 1.0, 2) if args.quick else (15, 5.0, args.repeats)
     steps = rollouts * round(seconds / 0.001)
-    rows = []
+    rows: dict[str, list[dict]] = {"composed": [], "separate": []}
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(repeats):
-            row = ros_iteration(rollouts, seconds, 150 + (os.getpid() + k) % 50, Path(tmp))
-            rows.append(row)
-            print(f"over ROS {k + 1}/{repeats}: rollouts {row['rollout_seconds']:.2f} s "
-                  f"({steps / row['rollout_seconds']:.0f} steps/s), update {row['update_seconds']:.2f} s", flush=True)
+            for j, how in enumerate(rows):
+                row = ros_iteration(rollouts, seconds, 150 + (os.getpid() + 2 * k + j) % 50, Path(tmp),
+                                    composed=how == "composed")
+                rows[how].append(row)
+                print(f"over ROS, {how} {k + 1}/{repeats}: rollouts {row['rollout_seconds']:.2f} s "
+                      f"({steps / row['rollout_seconds']:.0f} steps/s), update {row['update_seconds']:.2f} s",
+                      flush=True)
     floor = []
     for k in range(repeats):  # the runtime's floor: a bare rclpy round trip between two processes
         env = dict(os.environ, ROS_DOMAIN_ID=str(150 + (os.getpid() + 7 + k) % 50),
@@ -92,20 +97,27 @@ def main() -> int:
         print(f"rclpy ping-pong floor {k + 1}/{repeats}: {floor[-1]['round_trips_per_s']:.0f} round trips/s",
               flush=True)
     local = [in_process_iteration(rollouts, seconds) for _ in range(2)]
-    rates = [steps / r["rollout_seconds"] for r in rows]
-    ros_wall = statistics.median(r["wall_seconds"] for r in rows)
+    rates = [steps / r["rollout_seconds"] for r in rows["composed"]]
+    rates_separate = [steps / r["rollout_seconds"] for r in rows["separate"]]
+    ros_wall = statistics.median(r["wall_seconds"] for r in rows["composed"])
+    separate_wall = statistics.median(r["wall_seconds"] for r in rows["separate"])
     local_wall = statistics.median(r["wall_seconds"] for r in local)
     result = {
         "benchmark": "stack", "date": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": platform.machine(),
         "cpus": os.cpu_count(), "rollouts": rollouts, "episode_seconds": seconds, "repeats": repeats,
         "lockstep_steps_per_s": {"median": statistics.median(rates), "min": min(rates), "max": max(rates),
-                                 "all": rates, "target": TARGET_STEPS_PER_S},
+                                 "all": rates, "target": TARGET_STEPS_PER_S, "what": "composed (nf_sim_stack)"},
+        "lockstep_steps_per_s_separate": {"median": statistics.median(rates_separate), "min": min(rates_separate),
+                                          "max": max(rates_separate), "all": rates_separate,
+                                          "what": "sim_bridge and nf_controller as two processes over topics"},
         "pingpong_floor": {"round_trips_per_s_median": statistics.median(f["round_trips_per_s"] for f in floor),
                            "median_us": statistics.median(f["median_us"] for f in floor), "all": floor,
                            "what": "bare rclpy round trip between two processes (bench/pingpong.py), no work"},
         "iteration_wall_s": {"over_ros_median": ros_wall, "in_process_median": local_wall,
                              "ros_over_in_process": ros_wall / local_wall,
-                             "over_ros_all": [r["wall_seconds"] for r in rows],
+                             "separate_median": separate_wall, "separate_over_in_process": separate_wall / local_wall,
+                             "over_ros_all": [r["wall_seconds"] for r in rows["composed"]],
+                             "separate_all": [r["wall_seconds"] for r in rows["separate"]],
                              "in_process_all": [r["wall_seconds"] for r in local]},
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -32,11 +32,12 @@ def _bags_line(bags: dict) -> str:
 
 
 def _stack_line(stack: dict) -> str:
-    r, w = stack["lockstep_steps_per_s"], stack["iteration_wall_s"]
-    return (f"   lockstep over ROS: median {r['median']:.0f} steps/s (target >= {r['target']:.0f}; bare rclpy "
-            f"ping-pong floor {stack['pingpong_floor']['round_trips_per_s_median']:.0f}/s); PPO iteration "
-            f"over ROS {w['over_ros_median']:.1f} s vs in process {w['in_process_median']:.1f} s "
-            f"({w['ros_over_in_process']:.1f}x)")
+    r, w, sep = stack["lockstep_steps_per_s"], stack["iteration_wall_s"], stack["lockstep_steps_per_s_separate"]
+    return (f"   lockstep, composed: median {r['median']:.0f} steps/s (target >= {r['target']:.0f}); two processes "
+            f"{sep['median']:.0f} steps/s (bare rclpy ping-pong floor "
+            f"{stack['pingpong_floor']['round_trips_per_s_median']:.0f}/s); PPO iteration composed "
+            f"{w['over_ros_median']:.1f} s, two processes {w['separate_median']:.1f} s, in process "
+            f"{w['in_process_median']:.1f} s ({w['ros_over_in_process']:.1f}x / {w['separate_over_in_process']:.1f}x)")
 
 
 def _realtime_line(realtime: dict) -> str:
