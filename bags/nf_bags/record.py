@@ -16,9 +16,11 @@ import argparse
 import importlib
 import sys
 import time
-from collections.abc import Sequence
+from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -67,15 +69,44 @@ def _hidden(topic: str) -> bool:
     return any(part.startswith("_") for part in topic.split("/"))
 
 
+DEDUP_SECONDS = 3.0  # after a (re)subscription: how long history samples are checked against what was recorded
+RECENT = 64  # hashes of the last messages per topic kept for that check
+
+
+@dataclass
+class _Recorded:
+    """One recorded topic: its subscriptions and what they were made for."""
+
+    cls: type
+    msg_type: str
+    publishers: frozenset = frozenset()  # endpoint GIDs of the publishers the QoS was chosen for
+    main: Any = None  # the subscription that records
+    reliable: bool = True
+    latched: bool = False
+    main_dedup_until: float = 0.0  # monotonic: messages of ``main`` equal to a recent one are history
+    catchup: Any = None  # transient-local subscription for latched history when publishers are mixed
+    catchup_until: float = 0.0  # monotonic: after this, ``catchup`` messages are live duplicates: dropped
+    recent: deque = field(default_factory=lambda: deque(maxlen=RECENT))
+
+
 class RecorderNode(Node):
-    """Raw subscriptions feeding a ``BagWriter``; see the module docstring."""
+    """Raw subscriptions feeding a ``BagWriter``; see the module docstring.
+
+    QoS: a topic is subscribed once a publisher of it is seen: reliable if every publisher is,
+    transient local if every publisher is. Every discovery round looks at the publishers again
+    (late joiners): a new best-effort or volatile publisher makes the subscription follow (else it
+    would be incompatible and record nothing of it); publishers that are all transient local again
+    make it transient local. When transient-local and volatile publishers are mixed, a second,
+    transient-local subscription takes the latched history of the transient-local ones (its
+    messages already recorded, or arriving later as live duplicates, are dropped by content).
+    """
 
     def __init__(self, options: RecorderOptions) -> None:
         super().__init__("nf_bag_recorder")
         self.options = options
         self.writer = BagWriter(options.output, options.writer)
         self._wanted = {self.resolve_topic_name(t) for t in options.topics}
-        self._subscribed: dict[str, object] = {}
+        self._subscribed: dict[str, _Recorded] = {}
         self._skipped: set[str] = set()
         self._t0 = time.monotonic()
         self._discover()
@@ -86,7 +117,10 @@ class RecorderNode(Node):
 
     def _discover(self) -> None:
         for topic, types in self.get_topic_names_and_types():
-            if topic in self._subscribed or topic in self._skipped:
+            if topic in self._subscribed:
+                self._recheck(topic)
+                continue
+            if topic in self._skipped:
                 continue
             if self._wanted and topic not in self._wanted:
                 continue
@@ -98,8 +132,17 @@ class RecorderNode(Node):
                 continue
             self._subscribe(topic, types[0])
 
+    def _offers(self, topic: str) -> list:
+        return [p for p in self.get_publishers_info_by_topic(topic) if p.node_name != self.get_name()]
+
+    def _sub_qos(self, reliable: bool, latched: bool) -> QoSProfile:
+        return QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=self.options.depth,
+            reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
     def _subscribe(self, topic: str, msg_type: str) -> None:
-        publishers = [p for p in self.get_publishers_info_by_topic(topic) if p.node_name != self.get_name()]
+        publishers = self._offers(topic)
         if not publishers:
             return  # only subscribers so far: wait for a publisher to learn its QoS
         try:
@@ -110,21 +153,73 @@ class RecorderNode(Node):
             self.get_logger().error(f"not recording {topic} ({msg_type}): {exc}")
             self._skipped.add(topic)
             return
+        rec = _Recorded(cls, msg_type)
+        self._subscribed[topic] = rec
+        self._recheck(topic, publishers)
+        self.get_logger().info(f"recording {topic} ({msg_type}, {'reliable' if rec.reliable else 'best effort'}"
+                               f"{', transient local' if rec.latched else ''}"
+                               f"{', latched history of the transient-local ones' if rec.catchup else ''})")
+
+    def _recheck(self, topic: str, publishers: list | None = None) -> None:
+        """Follow the publishers' QoS (see the class docstring); cheap when they did not change."""
+        rec = self._subscribed[topic]
+        publishers = self._offers(topic) if publishers is None else publishers
+        gids = frozenset(bytes(p.endpoint_gid) for p in publishers)
+        if not publishers or gids == rec.publishers:
+            return
+        new = [p for p in publishers if bytes(p.endpoint_gid) not in rec.publishers]
+        rec.publishers = gids
         reliable = all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in publishers)
-        latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers)
-        qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST, depth=self.options.depth,
-            reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+        latched = [p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers]
+        all_latched, any_latched = all(latched), any(latched)
+        now = time.monotonic()
+        first = rec.main is None
+        # reliability only ever goes down (a reliable reader cannot match a best-effort writer)
+        want_reliable = rec.reliable and reliable if not first else reliable
+        if first or want_reliable != rec.reliable or all_latched != rec.latched:
+            old = rec.main
+            rec.reliable, rec.latched = want_reliable, all_latched
+            rec.main = self.create_subscription(rec.cls, topic, self._on_message(topic, rec, False),
+                                                self._sub_qos(rec.reliable, rec.latched), raw=True)
+            rec.main_dedup_until = 0.0 if first else now + DEDUP_SECONDS
+            if old is not None:
+                self.destroy_subscription(old)
+                self.get_logger().info(f"{topic}: publishers changed, now recording it "
+                                       f"{'reliable' if rec.reliable else 'best effort'}"
+                                       f"{', transient local' if rec.latched else ''}")
+        if any_latched and not all_latched and any(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                                                   for p in new):
+            if rec.catchup is not None:
+                self.destroy_subscription(rec.catchup)
+            # history reaches reliable readers only: reliable if the transient-local publishers all are
+            keep = all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in publishers
+                       if p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL)
+            rec.catchup = self.create_subscription(rec.cls, topic, self._on_message(topic, rec, True),
+                                                   self._sub_qos(keep, True), raw=True)
+            rec.catchup_until = now + DEDUP_SECONDS
+        elif all_latched and rec.catchup is not None:
+            self.destroy_subscription(rec.catchup)
+            rec.catchup = None
+
+    def _on_message(self, topic: str, rec: _Recorded, catchup: bool) -> Callable[[bytes], None]:
         write = self.writer.write
         now = time.time_ns
+        clock = time.monotonic
+        recent = rec.recent
 
         def on_message(data: bytes) -> None:  # rclpy 7.1's EventsExecutor gives no MessageInfo
+            if catchup or rec.main_dedup_until:
+                until = rec.catchup_until if catchup else rec.main_dedup_until
+                if clock() > until:
+                    if catchup:
+                        return  # a live message the main subscription records too
+                    rec.main_dedup_until = 0.0
+                elif hash(data) in recent:
+                    return  # history already recorded
+            recent.append(hash(data))
             write(topic, data, now())
 
-        self._subscribed[topic] = self.create_subscription(cls, topic, on_message, qos, raw=True)
-        self.get_logger().info(f"recording {topic} ({msg_type}, {'reliable' if reliable else 'best effort'}"
-                               f"{', transient local' if latched else ''})")
+        return on_message
 
     def destroy_node(self) -> None:
         """Close the bag (last chunk, summary, final metadata.yaml), then the node."""
@@ -134,7 +229,6 @@ class RecorderNode(Node):
             self.get_logger().info(f"closed {self.options.output}: {self.writer.message_count} messages in "
                                    f"{time.monotonic() - self._t0:.1f} s ({counts})")
         super().destroy_node()
-
 
 def build_parser() -> argparse.ArgumentParser:
     """The recorder's command line (ROS arguments after --ros-args pass through)."""
