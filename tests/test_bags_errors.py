@@ -16,7 +16,7 @@ import yaml
 from mcap.reader import make_reader
 from nf_bags import bagfile, reader
 from nf_bags.record import message_class
-from nf_bags.writer import INFINITE_DURATION, BagWriter, WriterConfig, qos_dict
+from nf_bags.writer import BagWriter, WriterConfig, qos_dict
 
 from ros_testing import REPO
 
@@ -178,8 +178,8 @@ def test_writer_metadata_infinite_durations_and_closed_state_embedded_in_the_mca
         lifespan = liveliness_lease_duration = deadline
 
     entry = qos_dict(Qos())
-    assert entry["deadline"] == entry["lifespan"] == entry["liveliness_lease_duration"] == INFINITE_DURATION
-    assert INFINITE_DURATION == {"sec": 9223372036, "nsec": 854775807}
+    infinite = {"sec": 9223372036, "nsec": 854775807}  # RMW_DURATION_INFINITE as rosbag2 Jazzy writes it
+    assert entry["deadline"] == entry["lifespan"] == entry["liveliness_lease_duration"] == infinite
     bag = _subset_bag(tmp_path / "closed", {"/rollouts"})
     with open(bag / "closed_0.mcap", "rb") as f:
         records = {name: meta for name, meta in ((m.name, m.metadata) for m in make_reader(f).iter_metadata())}
