@@ -31,6 +31,7 @@ from sim_bridge_node.bridge import ACCEPTED, SimBridge
 LATE_AFTER = 0.001  # s: a tick starting this much after its scheduled time is late
 LONG_LATE_RUN = 3  # runs of at least this many late ticks are kept with their time
 _WAIT_IDLE = 0.05  # s, longest sleep of an idle lockstep loop before it looks again
+TASK_EVERY = 20  # steps between task reports (depth, success) outside episodes
 
 
 class TickTiming:
@@ -97,6 +98,7 @@ class SimDriverLoop:
         self.realtime = realtime
         self.after_step = after_step
         self.timing = TickTiming(bridge.dt, keep_all=keep_timing) if realtime else None
+        self._success_depth = bridge.env.scene.success_depth
         self.bad_torques = 0  # torques the bridge refused (never expected: the host returns finite ones)
         self.errors: list[str] = []
 
@@ -106,8 +108,7 @@ class SimDriverLoop:
 
         def reset_and_start() -> None:
             self.bridge.reset(seed=seed)
-            env = self.bridge.env
-            self.host.set_task(env.insertion_depth, env.success)
+            self._report_task()
             self.host.start_episode(run, self.bridge.stamp_ns, world_was_reset=True)
 
         return self.host.call(reset_and_start)
@@ -120,10 +121,19 @@ class SimDriverLoop:
         else:
             self._run_lockstep(stop)
 
+    def _report_task(self) -> None:
+        """The task's insertion depth and success, computed once (the depth is the costly part)."""
+        env = self.bridge.env
+        depth = env.insertion_depth
+        self.host.set_task(depth, env.task != "free" and depth >= self._success_depth)
+
     def _step(self, now: float) -> None:
         bridge, host = self.bridge, self.host
         env = bridge.env
-        host.set_task(env.insertion_depth, env.success)
+        # an episode records the depth at every decision; between episodes a fresh value every
+        # TASK_EVERY steps is plenty (status and diagnostics only)
+        if host.loop.episode is not None or bridge.steps % TASK_EVERY == 0:
+            self._report_task()
         tau = host.tick(bridge.stamp_ns, env.q, env.dq, now)
         if bridge.accept_command(tau, now) != ACCEPTED:
             self.bad_torques += 1
