@@ -1,0 +1,134 @@
+"""franky-sim (a MuJoCo FR3 behind the libfranka protocol) as the robot of a test: started on
+127.0.0.1 only, stopped by its PID; and the ROS-free driver stack built around a connection."""
+
+from __future__ import annotations
+
+import gc
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from franka_driver.loop import DriverConfig, FrankaDriverLoop
+from franka_driver.robot_model import identify
+from nf_controller_node import panda_spec
+from nf_controller_node.control_loop import ControlLoop, LoopConfig
+from nf_controller_node.host import ControllerHost
+from nf_controller_node.torque_law import TorqueLawConfig
+
+HOST = "127.0.0.1"
+PORT = 1337  # libfranka's command port
+
+
+def port_busy(host: str = HOST, port: int = PORT) -> bool:
+    """True when something already listens on the robot port (another simulator)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.settimeout(0.2)
+        return s.connect_ex((host, port)) == 0
+
+
+class FrankySim:
+    """``franky-sim -s mujoco --hostname 127.0.0.1`` as a child process (context manager)."""
+
+    def __init__(self, log_path: Path, timeout: float = 60.0) -> None:
+        if port_busy():
+            raise RuntimeError(f"{HOST}:{PORT} is taken: another robot simulator runs on this machine")
+        self.log_path = log_path
+        self._log = open(log_path, "w")
+        exe = str(Path(sys.executable).parent / "franky-sim")
+        self.proc = subprocess.Popen([exe, "-s", "mujoco", "--hostname", HOST], stdout=self._log,
+                                     stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + timeout
+        while "Connect to the server" not in log_path.read_text():
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                self.stop()
+                raise RuntimeError(f"franky-sim did not start:\n{log_path.read_text()}")
+            time.sleep(0.1)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def stop(self) -> None:
+        """SIGINT (its clean shutdown), then SIGKILL, by PID."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(5.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5.0)
+        self._log.close()
+
+    def __enter__(self) -> FrankySim:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+class DriverRig:
+    """pylibfranka connected to the simulator, the arm identified, a ControlLoop (gravity
+    compensation off, as on a Franka) behind a ControllerHost, and a FrankaDriverLoop on a thread."""
+
+    def __init__(self, idle_mode: str = "hold", config: DriverConfig | None = None) -> None:
+        import pylibfranka as franka
+
+        self.franka = franka
+        self.robot = franka.Robot(HOST, franka.RealtimeConfig.kIgnore)
+        state = self.robot.read_once()
+        self.identification = identify("auto", state, self.robot.load_model())
+        self.spec = spec = self.identification.spec
+        self.arm = spec.arm_model(panda_spec.GEAR_PART)
+        self.loop = ControlLoop(self.arm, TorqueLawConfig(gravity_compensation=False),
+                                LoopConfig(idle_mode=idle_mode, max_consecutive_misses=0),
+                                joint_names=spec.joint_names)
+        self.host = ControllerHost(self.loop)
+        self.tcp_arm = spec.arm_model(panda_spec.GEAR_PART)
+        self.x0 = self.tcp_arm.tcp_position(np.asarray(state.q))
+        self.taus: list[np.ndarray] = []
+        self.limits: list[np.ndarray] = []
+        errors = (franka.FrankaException, franka.ControlException, franka.CommandException,
+                  franka.NetworkException, franka.RealtimeException, franka.InvalidOperationException)
+        self.driver = FrankaDriverLoop(self.robot, self.host, self.tcp_arm.tcp_position,
+                                       config or DriverConfig(), franka.Torques, errors, after_tick=self._record)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _record(self, q: np.ndarray, dq: np.ndarray, tau: np.ndarray, stamp_ns: int) -> None:
+        self.taus.append(tau.copy())
+        self.limits.append(self.loop.controller.law.torque_limits.copy())
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self.driver.run, args=(self._stop,), daemon=True)
+        self._thread.start()
+
+    def robot_seconds(self) -> float:
+        """Robot time of the last state (s)."""
+        return self.host.last_stamp_ns * 1e-9
+
+    def run_for(self, robot_seconds: float, timeout: float = 120.0) -> None:
+        """Wait until the robot's clock advanced by ``robot_seconds`` (the simulator may run slower
+        than real time on a busy machine)."""
+        deadline = time.monotonic() + timeout
+        while self.host.last_stamp_ns == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        end = self.robot_seconds() + robot_seconds
+        while self.robot_seconds() < end:
+            if time.monotonic() > deadline or (self._thread is not None and not self._thread.is_alive()):
+                raise TimeoutError(f"robot clock at {self.robot_seconds():.3f} s, waited for {end:.3f} s")
+            time.sleep(0.01)
+
+    def stop(self) -> None:
+        """Stop the loop and disconnect (the simulator serves one client at a time)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(10.0)
+        self.driver.robot = None
+        self.robot = None
+        gc.collect()
