@@ -1,0 +1,104 @@
+"""``deploy_policy``: publish a trained policy to the controller without the learner.
+
+Reads a learner checkpoint (``runs/<run>/checkpoint.pt``, written by ``learner`` or ``train``),
+rebuilds its flow policy, sets the goal ``x_ref`` the user measured on the real fixture, and
+publishes the parameters on ``/policy_parameters`` latched (reliable, transient local) until
+stopped, so a controller started or restarted meanwhile gets them too. The controller validates
+them (limits, reach) and installs them between episodes, as it does the learner's.
+
+    deploy_policy runs/gear/checkpoint.pt --x-ref 0.52 0.03 0.11
+    deploy_policy runs/gear/checkpoint.pt --keep-x-ref --version 40
+
+The version defaults to the checkpoint's iteration; the controller refuses versions older than
+the one it has, so restart it (or pass a larger ``--version``) to go back to an older policy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from nf_controller_node.policy_params import PolicyParameters
+
+
+def load_checkpoint_policy(path: str | Path) -> tuple[PolicyParameters, int]:
+    """(the checkpoint's policy as PolicyParameters, its iteration). Needs torch (learner_node)."""
+    import torch
+
+    from learner_node.config import TrainConfig
+    from learner_node.trainer import build_policy
+
+    state = torch.load(Path(path), weights_only=True)
+    cfg = TrainConfig(**TrainConfig.with_defaults(state["config"]))
+    if cfg.policy != "nf":
+        raise ValueError(f"{path}: policy {cfg.policy!r}; the controller runs flow policies (nf) only")
+    policy = build_policy(cfg, np.zeros(cfg.dim))
+    policy.load_state_dict(state["policy"])
+    iteration = int(state["iteration"])
+    return policy.to_params(version=iteration), iteration
+
+
+def prepare(params: PolicyParameters, x_ref: list[float] | None, version: int | None) -> PolicyParameters:
+    """``params`` with the user's goal and version, checked like the controller checks them."""
+    if x_ref is not None:
+        params.x_ref = np.asarray(x_ref, dtype=float)
+    if version is not None:
+        params.version = int(version)
+    params.validate()
+    params.check_limits(reach=True)
+    return params
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="deploy_policy", description=__doc__.split("\n\n")[0],
+                                 epilog="ROS arguments may follow --ros-args.")
+    ap.add_argument("checkpoint", help="learner checkpoint (checkpoint.pt)")
+    goal = ap.add_mutually_exclusive_group(required=True)
+    goal.add_argument("--x-ref", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                      help="goal in the robot's base frame (m), measured on the real fixture")
+    goal.add_argument("--keep-x-ref", action="store_true", help="keep the checkpoint's (simulated) goal")
+    ap.add_argument("--version", type=int, default=None, help="policy version (default: the checkpoint's iteration)")
+    ap.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: until Ctrl-C)")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console script ``deploy_policy``."""
+    import rclpy
+    from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.utilities import remove_ros_args
+
+    from nf_controller_node.topics import POLICY_PARAMETERS
+
+    argv = list(sys.argv if argv is None else argv)
+    args = _parser().parse_args(remove_ros_args(argv)[1:])
+    params, iteration = load_checkpoint_policy(args.checkpoint)
+    params = prepare(params, None if args.keep_x_ref else args.x_ref, args.version)
+    rclpy.init(args=argv)
+    node = rclpy.create_node("deploy_policy")
+    qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pub = node.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, qos)
+    pub.publish(params.fill_msg(PolicyParametersMsg()))
+    a = params.arch
+    node.get_logger().info(f"published {args.checkpoint} (iteration {iteration}) as version {params.version}: "
+                           f"n_flow={a.n_flow}, n_hidden={a.n_hidden}, x_ref={params.x_ref.tolist()}, "
+                           f"noise std {np.exp(params.log_std).tolist()} N; latched until stopped")
+    deadline = time.monotonic() + args.seconds if args.seconds > 0 else float("inf")
+    try:
+        while rclpy.ok() and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,293 @@
+"""franka_driver node: a Franka arm (FR3 or Panda) through libfranka's 1 kHz torque loop, hosting
+the flow controller in the same process.
+
+The node connects to the robot (``robot_ip``; ``realtime`` enforce | ignore), identifies the arm
+against the robot's own dynamics model (``franka_driver.robot_model``), builds the controller's
+Pinocchio model of that arm, and runs ``franka_driver.loop.FrankaDriverLoop`` on a driver thread:
+per tick readOnce -> controller -> writeOnce. It is always composed with an ``nf_controller``
+node (``nf_franka_stack``), which serves the RunEpisode action, rollouts, status, policy and
+clear_fault unchanged; this node adds:
+
+- ``joint_states`` (names as the connected robot's description: ``fr3_joint1..7`` or
+  ``panda_joint1..7``; effort = the commanded torque, without the robot's gravity) at
+  ``joint_state_rate`` from a timer, never from the tick;
+- ``/diagnostics`` (``franka_driver: robot``): loop timing (read -> write latency, late ticks,
+  missed cycles), libfranka exceptions and the latest error text, reset outcomes, TCP, depth;
+- ``~/recover`` (std_srvs/Trigger): after a libfranka error (a reflex), a person who has made the
+  cell safe restarts torque control (the controller then still holds until its clear_fault);
+- reset *motions* before episodes and success from kinematics (fixture parameters).
+"""
+
+from __future__ import annotations
+
+import array
+import json
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+
+from nf_controller_node import topics
+from nf_controller_node.panda_spec import DQ_MAX, HELD_PART_NAMES, Q_MAX, held_part_by_name
+from nf_controller_node.ros_runtime import declare_read_only
+
+from .loop import DriverConfig, FrankaDriverLoop, summary_us
+from .robot_model import ROBOT_KINDS, Identification, WrongRobotModelError, identify
+
+_D = DriverConfig()
+PARAMETERS = {
+    "robot_ip": ("172.16.0.2", "address of the robot's FCI (franky-sim: 127.0.0.1)"),
+    "realtime": ("enforce", "enforce (needs a realtime kernel, as on the robot's PC) | ignore (other kernels, sim)"),
+    "robot_model": ("auto", f"arm type, checked against the robot's own model: {' | '.join(ROBOT_KINDS)}"),
+    "held_part": ("gear", f"part in the hand (must equal nf_controller's): {' | '.join(HELD_PART_NAMES)}"),
+    "start_position": (_D.start_position.tolist(), "m, TCP position the reset motion drives to before each episode"),
+    "fixture_position": (_D.fixture_position.tolist(),
+                         "m, the fixture's mouth (insertion axis along -z) in the base frame"),
+    "goal": ([0.0], "m, x_ref an episode's policy must have, measured on the fixture ([0.0] or empty: not checked)"),
+    "goal_tolerance": (0.001, "m, largest difference between the policy's x_ref and goal"),
+    "fixture_radius": (_D.fixture_radius, "m, lateral distance from the fixture axis that counts as inside"),
+    "success_depth": (_D.success_depth, "m below the fixture mouth that counts as success"),
+    "reset_timeout": (_D.reset_timeout, "s the reset motion may take"),
+    "reset_tolerance": (_D.reset_tolerance, "m from start_position that counts as arrived"),
+    "reset_speed": (_D.reset_speed, "m/s, TCP speed below which the arm counts as still"),
+    "reset_settle": (_D.reset_settle, "ticks in a row arrived and still before the episode starts"),
+    "reset_stiffness": (_D.reset_stiffness, "N/m, the reset motion's spring (identity flow)"),
+    "reset_damping": (_D.reset_damping, "N s/m, the reset motion's damping"),
+    "automatic_error_recovery": (False, "after a libfranka error: recover and go on without a person"),
+    "recovery_wait": (_D.recovery_wait, "s before an automatic recovery"),
+    "gravity_headroom": (True, "clamp each command to limit - |g(q)| (the robot adds g(q) on top)"),
+    "joint_state_rate": (100.0, "joint_states messages per s (from a timer, not the tick)"),
+    "diagnostics_period": (1.0, "s between /diagnostics messages"),
+    "timing_log": ("", "file (.npy) for every read->write latency, periods and a .json summary at shutdown"),
+}
+PUBLISH_QOS = QoSProfile(depth=topics.PUBLISH_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+DIAG_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def _check(p: dict) -> None:
+    if p["realtime"] not in ("enforce", "ignore"):
+        raise ValueError(f"realtime must be enforce or ignore, got {p['realtime']!r}")
+    if p["robot_model"] not in ROBOT_KINDS:
+        raise ValueError(f"robot_model must be one of {ROBOT_KINDS}, got {p['robot_model']!r}")
+    held_part_by_name(p["held_part"])
+    for name in ("joint_state_rate", "diagnostics_period"):
+        if not p[name] > 0.0:
+            raise ValueError(f"{name} must be > 0, got {p[name]}")
+
+
+def driver_config(p: dict, keep_timing: bool = False) -> DriverConfig:
+    """The loop's settings from the node's parameters (checked)."""
+    config = DriverConfig(
+        start_position=np.asarray(p["start_position"], float),
+        fixture_position=np.asarray(p["fixture_position"], float),
+        fixture_radius=p["fixture_radius"], success_depth=p["success_depth"], reset_timeout=p["reset_timeout"],
+        reset_tolerance=p["reset_tolerance"], reset_speed=p["reset_speed"], reset_settle=p["reset_settle"],
+        reset_stiffness=p["reset_stiffness"], reset_damping=p["reset_damping"],
+        automatic_error_recovery=p["automatic_error_recovery"], recovery_wait=p["recovery_wait"],
+        gravity_headroom=p["gravity_headroom"], keep_timing=keep_timing,
+        goal=np.asarray(p["goal"], float) if len(p["goal"]) == 3 else None, goal_tolerance=p["goal_tolerance"])
+    config.check()
+    return config
+
+
+class FrankaDriverNode(Node):
+    """Connects to the robot and identifies it; ``attach(controller)`` builds the loop around the
+    composed controller's host; ``start_driver()`` starts the torque loop. See the module docstring."""
+
+    def __init__(self) -> None:
+        super().__init__("franka_driver")
+        p = declare_read_only(self, PARAMETERS)
+        _check(p)
+        self.params = p
+        self.config = driver_config(p, keep_timing=bool(p["timing_log"]))
+        import pylibfranka as franka  # here, so that --help and parameter errors need no robot
+
+        self.franka = franka
+        self.exceptions = (franka.FrankaException, franka.ControlException, franka.CommandException,
+                           franka.NetworkException, franka.RealtimeException, franka.InvalidOperationException)
+        mode = franka.RealtimeConfig.kEnforce if p["realtime"] == "enforce" else franka.RealtimeConfig.kIgnore
+        try:
+            self.robot = franka.Robot(p["robot_ip"], mode)
+            state = self.robot.read_once()
+            model = self.robot.load_model()
+        except self.exceptions as exc:
+            raise ValueError(f"cannot connect to the robot at {p['robot_ip']} (realtime {p['realtime']}): "
+                             f"{type(exc).__name__}: {exc}") from None
+        try:
+            self.identification: Identification = identify(p["robot_model"], state, model)
+        except WrongRobotModelError as exc:
+            raise ValueError(str(exc)) from None
+        self.spec = self.identification.spec
+        self.part = held_part_by_name(p["held_part"])
+        self.arm = self.spec.arm_model(self.part)  # the controller's model (its tick thread owns it)
+        self._tcp_arm = self.spec.arm_model(self.part)  # the driver's own copy for the TCP position
+        self.joint_names = list(self.spec.joint_names)
+        self.get_logger().info(f"connected to {p['robot_ip']}: {self.identification.summary()}; joints "
+                               f"{self.joint_names}; robot mode {state.robot_mode}")
+        self.driver: FrankaDriverLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._latest: tuple[Any, ...] | None = None  # (q, dq, tau copy, stamp_ns) of the last tick
+        self._state_msg = JointState()
+        self._state_msg.name = self.joint_names
+        self._state_pub = self.create_publisher(JointState, topics.JOINT_STATES, PUBLISH_QOS)
+        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAG_QOS)
+        self.create_service(Trigger, "~/recover", self._on_recover)
+        self.create_timer(1.0 / p["joint_state_rate"], self._publish_state)
+        self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
+        self._logged_error = ""
+
+    # ------------------------------------------------------------------ composition
+    def attach(self, controller: Any) -> FrankaDriverLoop:
+        """Build the torque loop around a composed ``NFControllerNode``; refuse settings that are
+        unsafe on a Franka, apply this arm's joint limits, and log the effective safety values."""
+        cp = controller.params
+        if cp["gravity_compensation"]:
+            raise ValueError("nf_controller's gravity_compensation is true, but a Franka compensates gravity "
+                             "itself (it would be applied twice): use --params-file config/franka.yaml, "
+                             "or -p nf_controller:gravity_compensation:=false")
+        if cp["held_part"] != self.params["held_part"]:
+            raise ValueError(f"held_part differs: nf_controller {cp['held_part']!r}, franka_driver "
+                             f"{self.params['held_part']!r} (set both, e.g. in the /** section)")
+        loop = controller.loop
+        if tuple(loop.joints.joint_names) != tuple(self.joint_names):
+            raise ValueError(f"controller joints {list(loop.joints.joint_names)} differ from the robot's "
+                             f"{self.joint_names}")
+        spec = self.spec
+        # the connected arm's joint ranges (the loop's plausibility bounds default to the Panda's)
+        margin = loop.q_max - Q_MAX
+        loop.q_min = spec.q_min - margin
+        loop.q_max = spec.q_max + margin
+        loop.dq_max = spec.dq_max * (loop.dq_max / DQ_MAX)
+        law = loop.controller.law
+        law.torque_limits[:] = np.minimum(law.torque_limits, spec.torque_limits)
+        tcp = self._tcp_arm.tcp_position
+        self.driver = FrankaDriverLoop(self.robot, controller.host, tcp, self.config, self.franka.Torques,
+                                       self.exceptions, after_tick=self._after_tick)
+        self.get_logger().warn(
+            "EFFECTIVE SAFETY VALUES: "
+            f"arm {spec.kind}, gravity_compensation {cp['gravity_compensation']} (robot adds g(q)), "
+            f"torque limits {law.torque_limits.tolist()} Nm minus |g(q)| + 0.5 Nm "
+            f"({'on' if self.config.gravity_headroom else 'OFF'}), rate limit {law.torque_rate_limit:g} Nm/s, "
+            f"hold_damping {law.hold_damping:g} Nm s/rad, joint_damping {law.joint_damping:g}, k_rot {law.k_rot:g}, "
+            f"d_rot {law.d_rot:g}, idle_mode {loop.config.idle_mode}, deadline {loop.config.deadline * 1e3:g} ms x "
+            f"{loop.config.max_consecutive_misses}, joint ranges {np.round(loop.q_min, 3).tolist()} .. "
+            f"{np.round(loop.q_max, 3).tolist()} rad, reset {self.config.reset_stiffness:g} N/m / "
+            f"{self.config.reset_damping:g} N s/m to {self.config.start_position.tolist()} within "
+            f"{self.config.reset_timeout:g} s, fixture {self.config.fixture_position.tolist()}, goal "
+            f"{'any' if self.config.goal is None else self.config.goal.tolist()}, "
+            f"automatic_error_recovery {self.config.automatic_error_recovery}")
+        return self.driver
+
+    def start_driver(self) -> None:
+        """Start the torque loop on its own thread."""
+        if self.driver is None or self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._drive, name="franka-driver", daemon=True)
+        self._thread.start()
+
+    def _drive(self) -> None:
+        try:
+            self.driver.run(self._stop)
+        except Exception as exc:  # never silently: the robot stops on its own without our commands
+            self.get_logger().fatal(f"driver loop stopped: {exc!r}")
+            raise
+
+    def stop_driver(self) -> None:
+        """Stop the torque loop (ends the motion with a zero command) and join its thread."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+
+    def _after_tick(self, q: np.ndarray, dq: np.ndarray, tau: np.ndarray, stamp_ns: int) -> None:
+        self._latest = (q, dq, tau.copy(), stamp_ns)  # one tuple: read whole by the publisher
+
+    # ------------------------------------------------------------------ publishing
+    def _publish_state(self) -> None:
+        latest = self._latest
+        if latest is None:
+            return
+        q, dq, tau, stamp_ns = latest
+        msg = self._state_msg
+        sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = int(sec), int(nanosec)
+        msg.position = array.array("d", q.tobytes())
+        msg.velocity = array.array("d", dq.tobytes())
+        msg.effort = array.array("d", tau.tobytes())
+        self._state_pub.publish(msg)
+
+    def _publish_diagnostics(self) -> None:
+        d = self.driver
+        if d is None:
+            return
+        status = DiagnosticStatus(name="franka_driver: robot",
+                                  hardware_id=f"{self.spec.kind}@{self.params['robot_ip']}")
+        if d.in_error:
+            status.level, status.message = DiagnosticStatus.ERROR, f"libfranka error: {d.last_error}"
+        elif d.sessions:
+            status.level, status.message = DiagnosticStatus.OK, "torque control"
+        else:
+            status.level, status.message = DiagnosticStatus.OK, "starting"
+        if d.last_error and d.last_error != self._logged_error:
+            self._logged_error = d.last_error
+            self.get_logger().error(f"libfranka: {d.last_error}")
+        lat = summary_us(d.timing.take_window())
+        values = {"arm": self.spec.kind, "exceptions": d.exceptions, "last_error": d.last_error,
+                  "in_error": d.in_error, "recoveries": d.recoveries, "sessions": d.sessions,
+                  **{f"latency_{k}": f"{v:.1f}" for k, v in lat.items()}, **d.timing.counters(),
+                  "resets_done": d.resets_done, "resets_failed": d.resets_failed, "last_reset": d.last_reset,
+                  "tcp": np.round(d.x, 4).tolist(), "insertion_depth": f"{d.depth:.4f}", "success": d.success}
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._diag_pub.publish(msg)
+
+    def _on_recover(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        d = self.driver
+        if d is None or not d.in_error:
+            response.success, response.message = False, "no libfranka error to recover from"
+            return response
+        d.request_recovery()
+        response.success = True
+        response.message = (f"recovering from: {d.last_error}; the controller holds until "
+                            "nf_controller/clear_fault")
+        self.get_logger().warn(response.message)
+        return response
+
+    # ------------------------------------------------------------------ shutdown
+    def write_timing_log(self, path: Path) -> None:
+        """Every read->write latency (s) to ``path`` (.npy), periods to ``<path>.periods.npy``, summary .json."""
+        t = self.driver.timing
+        lat = np.frombuffer(t.latency, dtype=np.float64).copy()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.save(path, lat)
+        np.save(path.with_suffix(".periods.npy"), np.frombuffer(t.periods, dtype=np.float64).copy())
+        summary = {"latency": summary_us(t.latency), "period": summary_us(t.periods), **t.counters(),
+                   "exceptions": self.driver.exceptions, "last_error": self.driver.last_error}
+        path.with_suffix(".json").write_text(json.dumps(summary, indent=1))
+        self.get_logger().info(f"timing log: {lat.size} latencies to {path}")
+
+    def destroy_node(self) -> None:
+        """Stop the torque loop, write the timing log (when asked for), destroy the node."""
+        self.stop_driver()
+        if self.driver is not None and self.params["timing_log"]:
+            self.write_timing_log(Path(self.params["timing_log"]))
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    """Console script ``franka_driver``: the driver with its composed controller (``nf_franka_stack``)."""
+    from .stack import main as stack_main
+
+    return stack_main(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
