@@ -334,7 +334,8 @@ class BagScan:
         lines = []
         for f in self.files:
             for d in f.damage:
-                lines.append(f"{f.path.name}: {d}")
+                kind = "kept, doubtful" if d.suspect_messages else "skipped"
+                lines.append(f"{f.path.name}: {kind}: {d}")
             if f.orphans:
                 lines.append(f"{f.path.name}: {f.orphans} messages whose channel record is lost (no topic): skipped")
             if f.torn:
@@ -373,7 +374,7 @@ class BagScan:
             lines.append(f"  {name}  {types.get(name, '?')}  {counts.get(name, 0)}{extra}")
         problems = self.problems()
         if problems:
-            lines.append("skipped:")
+            lines.append("damage:")
             lines += [f"  {p}" for p in problems]
         custom = self.custom
         state = self.state
@@ -383,8 +384,8 @@ class BagScan:
         elif state == "closed":
             lines.append("state:      closed cleanly")
         elif state == "damaged":
-            lines.append("state:      DAMAGED: the recorder closed the bag, but parts of it cannot be read (skipped "
-                         "above; every other message is read). `--repair` writes a repaired copy")
+            lines.append("state:      DAMAGED: the recorder closed the bag, but parts of it are damaged (listed above; "
+                         "every message that can be read is read). `--repair` writes a repaired copy")
         else:
             b = self.loss_bound() or {}
             lost = b.get("lost_at_least", 0)
@@ -426,7 +427,7 @@ class RepairResult:
     before: BagScan
     output: Path | None  # None: nothing to repair, nothing written
     messages: int  # messages in the copy (= readable messages of the original)
-    dropped: list[str]  # what the original had that the copy does not (unreadable parts)
+    dropped: list[str]  # the original's damage: what the copy does not have, and what it kept with a doubt
 
     def report(self) -> str:
         """Human-readable lines."""
@@ -434,7 +435,11 @@ class RepairResult:
             return "repair:     nothing to repair (closed cleanly, nothing damaged); nothing written"
         lines = [f"repair:     wrote {self.output}: {self.messages} messages, every message readable in the "
                  f"original (which is left as it was)"]
-        lines += [f"  dropped: {d}" for d in self.dropped] or ["  dropped: nothing"]
+        dropped = [d for d in self.dropped if "kept, doubtful" not in d]
+        kept = [d for d in self.dropped if "kept, doubtful" in d]
+        lines += [f"  dropped: {d}" for d in dropped] or ["  dropped: nothing"]
+        lines += [f"  kept although its chunk's CRC did not match (written with a new CRC; the original's "
+                  f"bytes may have been damaged): {d}" for d in kept]
         return "\n".join(lines)
 
 

@@ -25,7 +25,7 @@ def as_json(result: BagScan) -> dict[str, Any]:
         "state": result.state, "closed": result.closed, "counts": dict(result.counts),
         "metadata_counts": result.metadata_counts, "lost": result.lost,
         "lost_seconds_known": window[0] if window else 0.0, "loss_bound": result.loss_bound(),
-        "skipped": result.problems(),
+        "damage": result.problems(),
         "files": [{"path": str(f.path), "complete": f.complete, "damaged": f.damaged, "chunks": f.chunks,
                    "size": f.size, "torn_bytes": f.torn, "messages": f.messages,
                    "summary_messages": f.summary_messages,

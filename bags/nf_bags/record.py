@@ -16,7 +16,7 @@ import argparse
 import importlib
 import sys
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -71,6 +71,7 @@ def _hidden(topic: str) -> bool:
 
 DEDUP_SECONDS = 3.0  # after a (re)subscription: how long history samples are checked against what was recorded
 RECENT = 64  # hashes of the last messages per topic kept for that check
+RETRY_SECONDS = 30.0  # a topic that cannot be recorded (several types, type not importable) is retried this long
 
 
 @dataclass
@@ -87,6 +88,7 @@ class _Recorded:
     catchup: Any = None  # transient-local subscription for latched history when publishers are mixed
     catchup_until: float = 0.0  # monotonic: after this, ``catchup`` messages are live duplicates: dropped
     recent: deque = field(default_factory=lambda: deque(maxlen=RECENT))
+    replayed: Counter = field(default_factory=Counter)  # after a resubscription: recorded, not yet seen again
 
 
 class RecorderNode(Node):
@@ -107,7 +109,8 @@ class RecorderNode(Node):
         self.writer = BagWriter(options.output, options.writer)
         self._wanted = {self.resolve_topic_name(t) for t in options.topics}
         self._subscribed: dict[str, _Recorded] = {}
-        self._skipped: set[str] = set()
+        self._skipped: set[str] = set()  # given up on (after RETRY_SECONDS of failures)
+        self._failures: dict[str, float] = {}  # topic -> monotonic time of its first failure
         self._t0 = time.monotonic()
         self._discover()
         self.create_timer(options.discovery_period, self._discover)
@@ -127,10 +130,20 @@ class RecorderNode(Node):
             if not self._wanted and _hidden(topic) and not self.options.include_hidden:
                 continue
             if len(types) != 1:
-                self.get_logger().warn(f"not recording {topic}: it has several types {types}")
-                self._skipped.add(topic)
+                self._failed(topic, f"it has several types {types}")
                 continue
             self._subscribe(topic, types[0])
+
+    def _failed(self, topic: str, reason: str) -> None:
+        """A topic that cannot be recorded now: retried every round for ``RETRY_SECONDS`` (graph
+        information and installed types can lag behind a starting node), then given up, loudly."""
+        now = time.monotonic()
+        first = self._failures.setdefault(topic, now)
+        if first == now:
+            self.get_logger().warn(f"not recording {topic} yet: {reason}; retrying for {RETRY_SECONDS:g} s")
+        elif now - first > RETRY_SECONDS:
+            self.get_logger().error(f"not recording {topic}: {reason}")
+            self._skipped.add(topic)
 
     def _offers(self, topic: str) -> list:
         return [p for p in self.get_publishers_info_by_topic(topic) if p.node_name != self.get_name()]
@@ -150,9 +163,10 @@ class RecorderNode(Node):
             self.writer.add_topic(topic, msg_type, qos=[qos_dict(p.qos_profile) for p in publishers],
                                   type_hash=str(publishers[0].topic_type_hash))
         except (LookupError, ImportError, AttributeError, ValueError) as exc:
-            self.get_logger().error(f"not recording {topic} ({msg_type}): {exc}")
-            self._skipped.add(topic)
+            self._failed(topic, f"({msg_type}) {exc}")
             return
+        if self._failures.pop(topic, None) is not None:
+            self.get_logger().info(f"{topic}: recordable now")
         rec = _Recorded(cls, msg_type)
         self._subscribed[topic] = rec
         self._recheck(topic, publishers)
@@ -182,6 +196,7 @@ class RecorderNode(Node):
             rec.main = self.create_subscription(rec.cls, topic, self._on_message(topic, rec, False),
                                                 self._sub_qos(rec.reliable, rec.latched), raw=True)
             rec.main_dedup_until = 0.0 if first else now + DEDUP_SECONDS
+            rec.replayed = Counter(rec.recent)  # each recorded message can come again once, as history
             if old is not None:
                 self.destroy_subscription(old)
                 self.get_logger().info(f"{topic}: publishers changed, now recording it "
@@ -214,8 +229,11 @@ class RecorderNode(Node):
                     if catchup:
                         return  # a live message the main subscription records too
                     rec.main_dedup_until = 0.0
-                elif hash(data) in recent:
+                elif catchup and hash(data) in recent:
                     return  # history already recorded
+                elif not catchup and rec.replayed[hash(data)] > 0:
+                    rec.replayed[hash(data)] -= 1
+                    return  # history the previous subscription recorded
             recent.append(hash(data))
             write(topic, data, now())
 
