@@ -140,3 +140,24 @@ def test_torn_file_reads_to_its_last_complete_chunk_and_repairs(sample_messages,
         assert sum(1 for _ in r.messages()) == len(readable)
     with pytest.raises(bagfile.BagError, match="exists"):
         bagfile.repair(bag)  # never over an earlier copy
+
+
+def test_chunks_never_span_chunk_seconds_of_receive_time_even_when_the_timer_is_late(sample_messages, tmp_path):
+    """A kill loses at most the open chunk: the writer cuts chunks by the messages' receive times,
+    so a late (or never running) tick cannot let one grow past ``chunk_seconds`` (issue 16, item 11)."""
+    clock = FakeClock()  # never advances: the recorder's timers do not run
+    bag = tmp_path / "late"
+    writer = _copy_messages(sample_messages[:400], bag, WriterConfig(chunk_bytes=1 << 30, chunk_seconds=1.0),
+                            clock, spacing_ns=10_000_000)  # 4 s of messages, 10 ms apart
+    assert writer.chunks == 3
+    writer.write_metadata()
+    meta = bagfile.load_metadata(bag)
+    pending = int(meta["custom_data"]["nf_bags.pending_since_ns"])
+    assert pending == sample_messages[0].log_time + 300 * 10_000_000  # the open chunk's first message
+    # as if killed now: every message received more than chunk_seconds before the last one is readable
+    health = bagfile.scan(bag)
+    assert health.counts.total() == 300 and health.state == "unclosed"
+    bound = health.loss_bound()
+    assert bound["lost_at_least"] == 100 and bound["guaranteed"]
+    assert bound["lost_until_ns"] == pending + 1_000_000_000
+    writer.close()

@@ -173,6 +173,8 @@ def mcap_files(bag: str | Path) -> list[Path]:
         raise BagError(f"{bag / METADATA} lists {', '.join(missing)}, which "
                        f"{'is' if len(missing) == 1 else 'are'} missing from {bag}")
     found = {p.name for p in bag.glob("*.mcap")}
+    if names:  # a single file's repaired copy next to it is not part of the bag
+        found = {n for n in found if n in names or not n.endswith(REPAIRED_SUFFIX + ".mcap")}
     if not meta and not found:
         if any(bag.glob("*.db3")):
             raise BagError(f"{bag} holds sqlite3 bag files (.db3); nf_bags reads MCAP bags only")
