@@ -1,7 +1,8 @@
 """Run every benchmark in sequence (never in parallel: the machine has 2 cores) and collect JSON.
 
 Each benchmark writes bench/results/<name>.json; this prints a one-line summary per target.
-Usage: python bench/run_all.py [--quick]   (the realtime benchmark alone takes 11 minutes; --quick: 1 minute)
+Usage: python bench/run_all.py [--quick]   (the realtime benchmark alone takes 11 minutes, the Franka
+driver's 10; --quick: 1 minute and 30 s)
 """
 
 from __future__ import annotations
@@ -57,9 +58,18 @@ def _realtime_line(realtime: dict) -> str:
             f"{realtime['targets']['longest_miss_run_below']}); echo baseline p99 {e['p99_us']:.0f} us")
 
 
+def _franka_line(franka: dict) -> str:
+    lat, t = franka["latency"], franka["targets"]
+    return (f"   Franka driver vs franky-sim ({franka['seconds']:.0f} s, {franka['arm']}): readOnce->writeOnce "
+            f"median {lat['p50_us']:.0f} us, p99 {lat['p99_us']:.0f} us (target <= {t['p99_us_max']:.0f}), p99.9 "
+            f"{lat['p999_us']:.0f} us (<= {t['p999_us_max']:.0f}), max {lat['max_us']:.0f} us; loop period p99 "
+            f"{franka['period']['p99_us']:.0f} us; longest run of late ticks {franka['longest_late_run']} "
+            f"(< {t['late_run_below']}); libfranka exceptions {franka['exceptions']}")
+
+
 # (name, script, one-line summary of its JSON): run in this order after the ROS-free benchmarks
 _ROS_BENCHMARKS = (("bags", "bench_bags.py", _bags_line), ("stack", "bench_stack.py", _stack_line),
-                   ("realtime", "bench_realtime.py", _realtime_line))
+                   ("realtime", "bench_realtime.py", _realtime_line), ("franka", "bench_franka.py", _franka_line))
 
 
 def main() -> int:

@@ -4,72 +4,18 @@
 from __future__ import annotations
 
 import gc
-import signal
-import socket
-import subprocess
-import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 
 from franka_driver.loop import DriverConfig, FrankaDriverLoop
 from franka_driver.robot_model import identify
+from franka_driver.simulator import HOST, FrankySim  # noqa: F401  (re-exported for the tests)
 from nf_controller_node import panda_spec
 from nf_controller_node.control_loop import ControlLoop, LoopConfig
 from nf_controller_node.host import ControllerHost
 from nf_controller_node.torque_law import TorqueLawConfig
-
-HOST = "127.0.0.1"
-PORT = 1337  # libfranka's command port
-
-
-def port_busy(host: str = HOST, port: int = PORT) -> bool:
-    """True when something already listens on the robot port (another simulator)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.settimeout(0.2)
-        return s.connect_ex((host, port)) == 0
-
-
-class FrankySim:
-    """``franky-sim -s mujoco --hostname 127.0.0.1`` as a child process (context manager)."""
-
-    def __init__(self, log_path: Path, timeout: float = 60.0) -> None:
-        if port_busy():
-            raise RuntimeError(f"{HOST}:{PORT} is taken: another robot simulator runs on this machine")
-        self.log_path = log_path
-        self._log = open(log_path, "w")
-        exe = str(Path(sys.executable).parent / "franky-sim")
-        self.proc = subprocess.Popen([exe, "-s", "mujoco", "--hostname", HOST], stdout=self._log,
-                                     stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + timeout
-        while "Connect to the server" not in log_path.read_text():
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                self.stop()
-                raise RuntimeError(f"franky-sim did not start:\n{log_path.read_text()}")
-            time.sleep(0.1)
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid
-
-    def stop(self) -> None:
-        """SIGINT (its clean shutdown), then SIGKILL, by PID."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(5.0)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5.0)
-        self._log.close()
-
-    def __enter__(self) -> FrankySim:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
 
 class DriverRig:

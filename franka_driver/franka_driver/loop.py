@@ -15,11 +15,13 @@ Episodes (``begin_episode``) start with a reset *motion*: the stable controller 
 flow, ``reset_stiffness``/``reset_damping``) drives the TCP to ``start_position``; when it is there
 and still (``reset_tolerance``, ``reset_speed``, ``reset_settle`` ticks) the episode starts from
 the next state, with the torque rate limit in force. A reset that does not converge within
-``reset_timeout`` fails the episode and the arm is held.
+``reset_timeout`` (robot time) fails the episode and the arm is held.
 
 libfranka's exceptions (reflexes, network) end torque control: the running episode is aborted,
-the controller latches the safe hold, the error is kept for /diagnostics, and the loop waits.
-Only ``automatic_error_recovery`` (or ``request_recovery()`` by a person) restarts it.
+the error is kept for /diagnostics, and the loop waits. Without ``automatic_error_recovery`` the
+controller's safe hold is latched too and only a person restarts (``request_recovery()``, then the
+controller's clear_fault). With it, the loop recovers after ``recovery_wait`` and goes on; an
+episode asked for meanwhile starts its reset motion once torque control is back.
 """
 
 from __future__ import annotations
@@ -50,12 +52,12 @@ class DriverConfig:
     """Settings of the driver loop. Units: m, s, N/m, N s/m."""
 
     start_position: np.ndarray = field(default_factory=lambda: np.array([0.5, 0.0, 0.35]))  # TCP, base frame
-    reset_timeout: float = 20.0  # s a reset motion may take
+    reset_timeout: float = 20.0  # s of robot time a reset motion may take
     reset_tolerance: float = 0.002  # m from start_position
     reset_speed: float = 0.005  # m/s, TCP speed below which the arm counts as still
     reset_settle: int = 200  # ticks in a row within tolerance and still
-    reset_stiffness: float = 200.0  # N/m of the reset motion's spring
-    reset_damping: float = 40.0  # N s/m
+    reset_stiffness: float = 1500.0  # N/m of the reset motion's spring (stiff: joint friction stops a soft
+    reset_damping: float = 100.0  # N s/m   spring short by friction / stiffness)
     fixture_position: np.ndarray = field(default_factory=lambda: np.array([0.5, 0.0, 0.07]))  # mouth, base frame
     fixture_radius: float = 0.005  # m: laterally within this of the fixture axis counts as "inside"
     success_depth: float = 0.016  # m below the mouth
@@ -149,10 +151,10 @@ def reset_policy(start: np.ndarray, stiffness: float, damping: float) -> PolicyP
 class _Reset:
     """A reset motion in progress (driver thread only)."""
 
-    def __init__(self, run: EpisodeRun, future: Future, deadline: float, evaluator: FlowEvaluator) -> None:
+    def __init__(self, run: EpisodeRun, future: Future, deadline_ns: int, evaluator: FlowEvaluator) -> None:
         self.run = run
         self.future = future
-        self.deadline = deadline
+        self.deadline_ns = deadline_ns  # robot time
         self.evaluator = evaluator
         self.saved_evaluator: Any = None
         self.saved_idle = ""
@@ -193,6 +195,7 @@ class FrankaDriverLoop:
         self.x = np.full(3, np.nan)  # TCP at the last state
         self._reset: _Reset | None = None
         self._recover = threading.Event()
+        self._deferred: tuple[Callable[[], None], Future] | None = None  # a reset waiting for a recovery
         self.resets_done = 0
         self.resets_failed = 0
         self.last_reset = ""  # outcome of the latest reset, for diagnostics
@@ -208,6 +211,9 @@ class FrankaDriverLoop:
 
         def start_reset() -> None:
             loop = self.host.loop
+            if self.in_error and self.config.automatic_error_recovery:
+                self._deferred = (start_reset, done)  # runs again when torque control is back
+                return
             if self.in_error:
                 raise RuntimeError(f"libfranka error, torque control stopped: {self.last_error}")
             if loop.policy is None:
@@ -221,7 +227,8 @@ class FrankaDriverLoop:
                                    "it with deploy_policy --x-ref, or change the goal")
             if self._reset is not None:
                 raise RuntimeError("a reset is already running")
-            reset = _Reset(run, done, time.monotonic() + self.config.reset_timeout, evaluator)
+            deadline = self.host.last_stamp_ns + int(self.config.reset_timeout * 1e9)
+            reset = _Reset(run, done, deadline, evaluator)
             ctrl = loop.controller
             reset.saved_evaluator, reset.saved_idle = ctrl.evaluator, loop.config.idle_mode
             ctrl.set_evaluator(reset.evaluator)
@@ -265,7 +272,7 @@ class FrankaDriverLoop:
             if not reset.future.done():
                 reset.future.set_result(None)
 
-    def _reset_progress(self, x: np.ndarray, now: float) -> None:
+    def _reset_progress(self, x: np.ndarray, stamp_ns: int) -> None:
         reset = self._reset
         loop = self.host.loop
         ctrl = loop.controller
@@ -287,8 +294,8 @@ class FrankaDriverLoop:
                 return
         else:
             reset.settled = 0
-        if now > reset.deadline:
-            self._end_reset(f"not at the start after {self.config.reset_timeout:.1f} s "
+        if stamp_ns > reset.deadline_ns:
+            self._end_reset(f"not at the start after {self.config.reset_timeout:.1f} s of robot time "
                             f"({reset.error * 1e3:.1f} mm away, TCP speed {speed * 1e3:.1f} mm/s)")
 
     # ------------------------------------------------------------------ task from kinematics
@@ -325,6 +332,14 @@ class FrankaDriverLoop:
         self.in_error = False
         self.timing.restart()
         ctrl.reset_rate_limit(np.zeros(loop.n))  # the robot gets no torque from us before the first write
+        deferred, self._deferred = self._deferred, None
+        if deferred is not None:
+            start, future = deferred
+            try:
+                start()
+            except Exception as exc:  # the episode's future says why
+                if not future.done():
+                    future.set_exception(exc)
         timing, cfg, tcp = self.timing, self.config, self.tcp
         arm, limits, law_limits = ctrl.arm, self.base_limits, self.law.torque_limits
         headroom = cfg.gravity_headroom
@@ -351,7 +366,7 @@ class FrankaDriverLoop:
             self.depth, self.success = self.task_of(x)
             host.set_task(self.depth, self.success)
             if self._reset is not None:
-                self._reset_progress(x, time.monotonic())
+                self._reset_progress(x, stamp_ns)
             if after is not None:
                 after(q, dq, host.tau, stamp_ns)
         # stop asked: finish the motion cleanly with a zero command
@@ -380,7 +395,8 @@ class FrankaDriverLoop:
             self._end_reset(f"libfranka error: {self.last_error}")
         if loop.episode is not None:
             self.host.end_episode(f"aborted: libfranka error: {self.last_error}")
-        if not loop.controller.fault:  # hold after the restart until someone clears it
+        if not self.config.automatic_error_recovery and not loop.controller.fault:
+            # hold after the restart until a person clears it (automatic recovery goes on by itself)
             loop.controller.fault = f"libfranka error: {self.last_error}"[:300]
             loop.faults += 1
 
@@ -400,9 +416,6 @@ class FrankaDriverLoop:
         try:
             self.robot.automatic_error_recovery()
             self.recoveries += 1
-            ctrl = self.host.loop.controller
-            if self.config.automatic_error_recovery and ctrl.fault.startswith("libfranka error"):
-                self.host.loop.clear_fault()  # asked for: go on without a person
         except self.franka_errors as exc:
             self.exceptions += 1
             self.last_error = f"recovery failed: {type(exc).__name__}: {exc}"[:500]

@@ -53,7 +53,7 @@ PARAMETERS = {
     "goal_tolerance": (0.001, "m, largest difference between the policy's x_ref and goal"),
     "fixture_radius": (_D.fixture_radius, "m, lateral distance from the fixture axis that counts as inside"),
     "success_depth": (_D.success_depth, "m below the fixture mouth that counts as success"),
-    "reset_timeout": (_D.reset_timeout, "s the reset motion may take"),
+    "reset_timeout": (_D.reset_timeout, "s of robot time the reset motion may take"),
     "reset_tolerance": (_D.reset_tolerance, "m from start_position that counts as arrived"),
     "reset_speed": (_D.reset_speed, "m/s, TCP speed below which the arm counts as still"),
     "reset_settle": (_D.reset_settle, "ticks in a row arrived and still before the episode starts"),

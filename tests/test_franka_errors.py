@@ -1,0 +1,55 @@
+"""libfranka errors in the Franka driver's loop: the robot lost mid-episode (franky-sim killed by its
+PID) raises in readOnce; the loop aborts the episode, latches the controller's safe hold, keeps the
+error text for /diagnostics and waits for a recovery instead of dying."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from franka_driver.loop import DriverConfig, reset_policy
+from nf_controller_node.episode import EpisodeRun, EpisodeSpec
+from nf_controller_node.host import EPISODE_END
+from nf_controller_node.reward import RewardWeights
+
+from franky import DriverRig, FrankySim
+
+pytest.importorskip("pylibfranka")
+
+
+def test_robot_lost_mid_episode_aborts_it_latches_the_hold_and_keeps_the_error(tmp_path):
+    sim = FrankySim(tmp_path / "franky-sim.log")
+    rig = None
+    try:
+        rig = DriverRig(idle_mode="hold", config=DriverConfig(reset_timeout=60.0, reset_tolerance=0.01,
+                                                                reset_speed=0.02, reset_settle=20))
+        start = rig.x0.copy()
+        rig.driver.config.start_position = start  # already there: the reset converges at once
+        params = reset_policy(start + np.array([0.0, 0.0, -0.05]), 300.0, 40.0)
+        params.version = 2
+        rig.loop.set_policy(params)
+        rig.start()
+        spec = EpisodeSpec(episode_id=9, policy_version=2, duration=30.0, decision_period=0.01,
+                           control_period=0.001, sigma=None, noise_seed=0, x_goal=params.x_ref.copy(),
+                           weights=RewardWeights(), chunk_decisions=10)
+        rig.driver.begin_episode(0, EpisodeRun(spec)).result(timeout=120.0)
+        rig.run_for(0.2)
+        sim.proc.kill()  # the robot is gone (by PID)
+        sim.proc.wait(10)
+        deadline = time.monotonic() + 30.0
+        while not rig.driver.in_error and time.monotonic() < deadline:
+            time.sleep(0.05)
+        d = rig.driver
+        assert d.in_error and d.exceptions == 1, d.last_error
+        assert "Exception" in d.last_error and "libfranka" in d.last_error, d.last_error
+        assert rig.loop.fault.startswith("libfranka error"), rig.loop.fault
+        ends = [e for e in rig.host.drain() if e.kind == EPISODE_END]
+        assert ends and ends[-1].text.startswith("aborted: libfranka error"), ends
+        assert rig.loop.episode is None
+        assert rig._thread.is_alive()  # waiting for a recovery, not crashed
+    finally:
+        if rig is not None:
+            rig.stop()
+        sim.stop()

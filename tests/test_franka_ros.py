@@ -1,0 +1,126 @@
+"""The Franka stack over ROS against franky-sim on 127.0.0.1: ``nf_franka_stack`` (franka_driver and
+nf_controller composed, config/franka.yaml) holds without a policy, follows a latched policy, runs
+the unchanged learner through reset motions over the real libfranka protocol, survives a kill -9
+of the learner mid-episode, and takes a checkpoint from ``deploy_policy``. These are the commands
+docs/hardware.md gives."""
+
+from __future__ import annotations
+
+import json
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from nf_msgs.msg import ControllerStatus
+from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
+from sensor_msgs.msg import JointState
+
+from franky import FrankySim
+from ros_testing import REPO, RosProcess, allocate_domain_id
+from test_nodes import LATCHED, RELIABLE, Probe, diag_values, policy_msg
+
+pytestmark = pytest.mark.ros
+pytest.importorskip("pylibfranka")
+
+CONFIG = str(REPO / "config" / "franka.yaml")
+TASK = str(REPO / "config" / "gear.yaml")
+SIM_ROBOT = ["-p", "franka_driver:robot_ip:=127.0.0.1", "-p", "franka_driver:realtime:=ignore"]
+FR3_JOINTS = [f"fr3_joint{i}" for i in range(1, 8)]
+
+
+def franka_stack(domain: int, log: Path, *extra: str) -> RosProcess:
+    """``nf_franka_stack --ros-args --params-file config/franka.yaml`` pointed at the simulator."""
+    return RosProcess(["-m", "franka_driver.stack", "--ros-args", "--params-file", CONFIG, *SIM_ROBOT, *extra],
+                      domain, log)
+
+
+def learner(domain: int, out: Path, log: Path, iterations: int) -> RosProcess:
+    """The unchanged learner on the gear task, short episodes."""
+    args = ["-m", "learner_node.node", "--ros-args", "--params-file", TASK,
+            "-p", f"learner_node:out_dir:={out}", "-p", f"learner_node:iterations:={iterations}",
+            "-p", "learner_node:rollouts_per_iter:=2", "-p", "learner_node:eval_episodes:=0",
+            "-p", "episode_seconds:=0.5"]
+    return RosProcess(args, domain, log)
+
+
+def test_stack_holds_without_a_policy_then_follows_one(tmp_path):
+    domain = allocate_domain_id()
+    probe = Probe(domain)
+    states = probe.collect(JointState, "joint_states", RELIABLE)
+    statuses = probe.collect(ControllerStatus, "controller_status", RELIABLE)
+    diags = probe.collect(DiagnosticArray, "/diagnostics", RELIABLE,
+                          convert=lambda m: diag_values(m, "franka_driver: robot"))
+    try:
+        with FrankySim(tmp_path / "franky-sim.log"), \
+                franka_stack(domain, tmp_path / "stack.log", "-p", "nf_controller:idle_mode:=policy") as stack:
+            assert probe.spin_until(lambda: len(states) > 20 and len(statuses) > 20, 90), stack.log()
+            assert list(states[-1][1].name) == FR3_JOINTS
+            assert "EFFECTIVE SAFETY VALUES" in stack.log() and "gravity_compensation False" in stack.log()
+            probe.spin_for(1.0)
+            status = statuses[-1][1]
+            assert status.mode == ControllerStatus.MODE_SAFE_HOLD and "waiting for policy" in status.fault
+            assert np.abs(np.array(states[-1][1].velocity)).max() < 0.01  # held still
+            x0 = np.array(status.x)
+            goal = x0 + np.array([0.03, 0.0, -0.03])
+            publisher = probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", LATCHED)
+            publisher.publish(policy_msg(goal, version=7, stiffness=2000.0, damping=120.0))
+            assert probe.spin_until(lambda: statuses[-1][1].policy_version == 7, 30), stack.log()
+
+            def error() -> float:
+                return float(np.linalg.norm(np.array(statuses[-1][1].x) - goal))
+
+            assert probe.spin_until(lambda: error() < 0.004, 60), f"{error() * 1e3:.1f} mm\n{stack.log()}"
+            last = [v for _, v in diags if v]
+            assert last and last[-1]["exceptions"] == "0" and last[-1]["arm"] == "fr3", last[-1:]
+            print(f"over ROS: {error() * 1e3:.2f} mm from x_ref; driver diagnostics {last[-1]}")
+        assert stack.proc.returncode == 0, stack.log()
+    finally:
+        probe.close()
+
+
+def test_learning_through_reset_motions_and_a_learner_killed_mid_episode(tmp_path):
+    domain = allocate_domain_id()
+    probe = Probe(domain)
+    statuses = probe.collect(ControllerStatus, "controller_status", RELIABLE)
+    run = tmp_path / "run"
+    metrics = run / "metrics.json"
+    learners: list[RosProcess] = []
+    try:
+        # automatic recovery: a loaded CI machine can starve the simulator past libfranka's 1 s UDP timeout
+        with FrankySim(tmp_path / "franky-sim.log"), franka_stack(
+                domain, tmp_path / "stack.log", "-p", "franka_driver:automatic_error_recovery:=true") as stack:
+            first = learner(domain, run, tmp_path / "learner1.log", 2)
+            learners.append(first)
+            assert probe.spin_until(lambda: metrics.exists(), 300), first.log() + stack.log()
+            assert json.loads(metrics.read_text())[0]["dropped_episodes"] == 0, first.log()
+            # iteration 2: kill the learner while an episode runs
+            assert probe.spin_until(lambda: statuses[-1][1].mode == ControllerStatus.MODE_RUNNING, 120), \
+                first.log() + stack.log()
+            first.proc.send_signal(signal.SIGKILL)
+            first.proc.wait(10)
+            # the episode ends, the arm is held (idle_mode hold), no fault: a new learner is accepted
+            assert probe.spin_until(lambda: statuses[-1][1].mode == ControllerStatus.MODE_IDLE, 60), stack.log()
+            assert not statuses[-1][1].fault
+            second = learner(domain, run, tmp_path / "learner2.log", 2)
+            learners.append(second)
+            assert second.proc.wait(300) == 0, second.log() + stack.log()
+            assert "after iteration 1" in second.log()
+            history = json.loads(metrics.read_text())
+            assert [r["iteration"] for r in history] == [1, 2]
+            assert all(r["dropped_episodes"] == 0 for r in history), second.log()
+
+            # deploy the trained checkpoint without the learner, with a measured goal
+            goal = [0.45, 0.05, 0.2]
+            deploy = RosProcess(["-m", "franka_driver.deploy", str(run / "checkpoint.pt"), "--x-ref", *map(str, goal),
+                                 "--version", "100", "--seconds", "60"], domain, tmp_path / "deploy.log")
+            with deploy:
+                assert probe.spin_until(lambda: statuses[-1][1].policy_version == 100, 60), \
+                    deploy.log() + stack.log()
+                assert list(statuses[-1][1].x_ref) == pytest.approx(goal)
+        assert stack.proc.returncode == 0, stack.log()
+    finally:
+        for proc in learners:
+            proc.stop()
+        probe.close()
