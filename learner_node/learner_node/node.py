@@ -30,6 +30,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
+from nf_controller_node.policy_params import PolicyParameters
 from nf_controller_node.ros_runtime import run_node
 from nf_controller_node.topics import POLICY_PARAMETERS, ROLLOUTS, RUN_EPISODE
 
@@ -41,6 +42,7 @@ from .trainer import CHECKPOINT, EVAL_SEED_BASE, Trainer, _atomic_write, _json_f
 LOG = logging.getLogger("learner_node")
 POLICY_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 CHUNK_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+ROLLOUT_VERSIONS = 1000  # parameter exploration: policy versions per iteration (one per rollout)
 NODE_PARAMETERS = {  # learner_node's own settings besides TrainConfig's
     "out_dir": "runs/ros",
     "episode_timeout": 120.0,  # s of wall time for one episode (lockstep runs at a few x real time)
@@ -79,10 +81,14 @@ class LearnerNode(Node):
         self.spin_lock = threading.Lock()  # held by each executor spin slice (ros_runtime.run_node)
 
     def publish_policy(self, trainer: Trainer) -> int:
-        """Publish the trainer's policy as version = completed iterations; returns the version."""
-        version = trainer.iteration
-        msg = trainer.policy.to_params(version=version).fill_msg(PolicyParametersMsg())
-        self._policy_pub.publish(msg)
+        """Publish the trainer's policy (its mean, with parameter exploration) under the version of the
+        completed iterations (``policy_version``); returns the version."""
+        return self.publish_params(trainer.policy.to_params(), policy_version(trainer))
+
+    def publish_params(self, params: PolicyParameters, version: int) -> int:
+        """Publish ``params`` under ``version`` (latched); returns the version."""
+        params.version = version
+        self._policy_pub.publish(params.fill_msg(PolicyParametersMsg()))
         return version
 
     def wait_for_server(self, timeout: float) -> bool:
@@ -122,6 +128,17 @@ class LearnerNode(Node):
                 final_success=result.success, start_seed=start_seed)
         except IncompleteEpisodeError as exc:
             raise EpisodeFailedError(f"rollout incomplete: {exc}") from None
+
+
+def policy_version(trainer: Trainer, rollout: int | None = None) -> int:
+    """Version of the policy after ``trainer.iteration`` completed iterations. With parameter
+    exploration every rollout runs its own parameters, published under the versions in between
+    (iteration x ROLLOUT_VERSIONS + rollout + 1), so versions only ever grow, as the controller
+    requires."""
+    if trainer.explorer is None:
+        return trainer.iteration
+    base = trainer.iteration * ROLLOUT_VERSIONS
+    return base if rollout is None else base + rollout + 1
 
 
 def _wait(future: Any, deadline: float) -> bool:
@@ -180,19 +197,24 @@ class RosTraining:
                  trainer.iteration + 1, cfg.iterations, cfg.rollouts_per_iter, self.out_dir)
         while trainer.iteration < cfg.iterations and not self.stop.is_set():
             t0 = time.perf_counter()
-            episodes = []
-            for i, (start, noise) in enumerate(trainer.episode_seeds()):
-                rec = self.episode(version, trainer.runner.start_seed(start), noise, deterministic=False)
-                if rec is not None:
-                    episodes.append(rec)
+            episodes: list[EpisodeRecord | None] = []
+            for i, (start, noise, params) in enumerate(trainer.episode_plan()):
+                if params is None:  # action exploration: the policy with noise
+                    rec = self.episode(version, trainer.runner.start_seed(start), noise, deterministic=False)
+                else:  # parameter exploration: this rollout's own deterministic, stable controller
+                    v = self.node.publish_params(params, policy_version(trainer, i))
+                    rec = self.episode(v, trainer.runner.start_seed(start), noise, deterministic=True)
+                episodes.append(rec)
                 LOG.debug("iteration %d episode %d/%d", trainer.iteration + 1, i + 1, cfg.rollouts_per_iter)
             if self.stop.is_set():
                 break
-            if not episodes:
+            done = [e for e in episodes if e is not None]
+            if not done:
                 LOG.error("iteration %d: every episode failed; stopping", trainer.iteration + 1)
                 return 1
-            row = trainer.update(episodes, time.perf_counter() - t0)
-            row["dropped_episodes"] = float(cfg.rollouts_per_iter - len(episodes))
+            # parameter exploration pairs rollouts: a dropped one stays in place as None
+            row = trainer.update(episodes if trainer.explorer is not None else done, time.perf_counter() - t0)
+            row["dropped_episodes"] = float(cfg.rollouts_per_iter - len(done))
             trainer.write_metrics()
             trainer.save_checkpoint(self.out_dir / CHECKPOINT)
             version = self.node.publish_policy(trainer)
