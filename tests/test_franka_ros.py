@@ -88,7 +88,7 @@ def test_learning_through_reset_motions_and_a_learner_killed_mid_episode(tmp_pat
     metrics = run / "metrics.json"
     learners: list[RosProcess] = []
     try:
-        # automatic recovery: a loaded CI machine can starve the simulator past libfranka's 1 s UDP timeout
+        # automatic recovery: a loaded CI machine can starve the simulator past libfranka's UDP receive timeout
         with FrankySim(tmp_path / "franky-sim.log"), franka_stack(
                 domain, tmp_path / "stack.log", "-p", "franka_driver:automatic_error_recovery:=true") as stack:
             first = learner(domain, run, tmp_path / "learner1.log", 2)

@@ -1,0 +1,168 @@
+"""The Franka driver's loop logic against a scripted stand-in for pylibfranka (no simulator, no
+network): a libfranka exception mid-episode, recovery by a person or automatically (with an
+episode asked for during the error), a policy whose x_ref is not the configured goal."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from franka_driver.loop import DriverConfig, FrankaDriverLoop, reset_policy
+from franka_driver.robot_model import FR3
+from nf_controller_node import panda_spec
+from nf_controller_node.control_loop import ControlLoop, LoopConfig
+from nf_controller_node.episode import EpisodeRun, EpisodeSpec
+from nf_controller_node.host import EPISODE_END, ControllerHost
+from nf_controller_node.reward import RewardWeights
+from nf_controller_node.torque_law import TorqueLawConfig
+
+Q0 = np.array([0.0, 0.0, 0.0, -1.57, 0.0, 1.57, 0.785])
+
+
+class ReflexError(RuntimeError):
+    """Stands in for pylibfranka.ControlException."""
+
+
+class _Duration:
+    def __init__(self, s: float) -> None:
+        self.s = s
+
+    def to_sec(self) -> float:
+        return self.s
+
+
+class _State:
+    def __init__(self, q: np.ndarray, dq: np.ndarray, t: float) -> None:
+        self.q, self.dq, self.time = q.tolist(), dq.tolist(), _Duration(t)
+        self.last_motion_errors = "[joint_reflex]"
+
+
+class _Torques:
+    def __init__(self, tau: list[float]) -> None:
+        self.tau_J = tau
+        self.motion_finished = False
+
+
+class FakeRobot:
+    """1 kHz robot time, joints that stay put (heavy, damped); raises ``ReflexError`` at tick ``fail_at``."""
+
+    def __init__(self, fail_at: int = -1) -> None:
+        self.q, self.dq, self.t = Q0.copy(), np.zeros(7), 0.0
+        self.ticks = 0
+        self.fail_at = fail_at
+        self.recoveries = 0
+        self.sessions = 0
+
+    def start_torque_control(self) -> FakeRobot:
+        self.sessions += 1
+        return self
+
+    def readOnce(self) -> tuple[_State, _Duration]:
+        time.sleep(0.0002)
+        self.ticks += 1
+        self.t += 0.001
+        if self.ticks == self.fail_at:
+            raise ReflexError("libfranka: Move command aborted: motion aborted by reflex! [\"cartesian_reflex\"]")
+        return _State(self.q, self.dq, self.t), _Duration(0.001)
+
+    def writeOnce(self, torques: _Torques) -> None:
+        self.dq = 0.9 * self.dq + 1e-4 * np.asarray(torques.tau_J)
+        self.q = self.q + 0.001 * self.dq
+
+    def read_once(self) -> _State:
+        return _State(self.q, self.dq, self.t)
+
+    def automatic_error_recovery(self) -> None:
+        self.recoveries += 1
+
+
+def _rig(robot: FakeRobot, **config: object) -> tuple[FrankaDriverLoop, ControlLoop, ControllerHost]:
+    arm = FR3.arm_model(panda_spec.GEAR_PART)
+    loop = ControlLoop(arm, TorqueLawConfig(gravity_compensation=False), LoopConfig(idle_mode="hold"),
+                       joint_names=FR3.joint_names)
+    host = ControllerHost(loop)
+    tcp = FR3.arm_model(panda_spec.GEAR_PART).tcp_position
+    x0 = tcp(Q0)
+    cfg = DriverConfig(start_position=x0, reset_tolerance=0.01, reset_speed=1.0, reset_settle=5, **config)
+    params = reset_policy(x0, 300.0, 40.0)
+    params.version = 1
+    loop.set_policy(params)
+    return FrankaDriverLoop(robot, host, tcp, cfg, _Torques, (ReflexError,)), loop, host
+
+
+def _episode(x_goal: np.ndarray, seconds: float = 5.0) -> EpisodeRun:
+    spec = EpisodeSpec(episode_id=5, policy_version=1, duration=seconds, decision_period=0.01, control_period=0.001,
+                       sigma=None, noise_seed=0, x_goal=x_goal, weights=RewardWeights(), chunk_decisions=10)
+    return EpisodeRun(spec)
+
+
+def _wait(predicate: object, timeout: float = 20.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.005)
+    return True
+
+
+def test_reflex_mid_episode_aborts_it_latches_the_hold_and_waits_for_a_person():
+    robot = FakeRobot(fail_at=400)
+    driver, loop, host = _rig(robot)
+    stop = threading.Event()
+    thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        driver.begin_episode(0, _episode(loop.policy.x_ref)).result(timeout=20)
+        assert _wait(lambda: driver.in_error)
+        assert "ReflexError" in driver.last_error and "joint_reflex" in driver.last_error
+        assert loop.fault.startswith("libfranka error")
+        ends = [e for e in host.drain() if e.kind == EPISODE_END]
+        assert ends and ends[0].text.startswith("aborted: libfranka error")
+        with pytest.raises(RuntimeError, match="libfranka error"):  # no episode while the error stands
+            driver.begin_episode(0, _episode(loop.policy.x_ref)).result(timeout=20)
+        time.sleep(0.3)
+        assert robot.recoveries == 0 and robot.sessions == 1  # nobody asked: no recovery
+        driver.request_recovery()
+        assert _wait(lambda: robot.sessions == 2)
+        assert robot.recoveries == 1 and not driver.in_error
+        assert loop.fault.startswith("libfranka error")  # the controller holds until clear_fault
+        host.call(loop.clear_fault).result(timeout=5)
+        driver.begin_episode(0, _episode(loop.policy.x_ref)).result(timeout=20)
+    finally:
+        stop.set()
+        thread.join(5)
+
+
+def test_automatic_recovery_goes_on_and_an_episode_asked_meanwhile_starts_after_it():
+    robot = FakeRobot(fail_at=50)
+    driver, loop, _host = _rig(robot, automatic_error_recovery=True, recovery_wait=0.3)
+    stop = threading.Event()
+    thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        assert _wait(lambda: driver.in_error)
+        assert not loop.fault  # automatic: no latch
+        started = driver.begin_episode(0, _episode(loop.policy.x_ref, seconds=0.05))
+        started.result(timeout=20)  # waited for the recovery, then reset and started
+        assert robot.recoveries == 1 and robot.sessions == 2 and driver.resets_done == 1
+    finally:
+        stop.set()
+        thread.join(5)
+
+
+def test_an_episode_whose_policy_is_not_the_goal_is_refused():
+    robot = FakeRobot()
+    driver, loop, _host = _rig(robot, goal=np.array([0.4, 0.1, 0.2]))
+    stop = threading.Event()
+    thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        with pytest.raises(RuntimeError, match="is not the goal parameter"):
+            driver.begin_episode(0, _episode(loop.policy.x_ref)).result(timeout=20)
+        assert loop.episode is None and driver.resets_done == 0
+    finally:
+        stop.set()
+        thread.join(5)
