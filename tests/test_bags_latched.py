@@ -65,9 +65,13 @@ def _wait(predicate, timeout: float) -> bool:
 
 
 def _versions(bag: Path) -> list[int]:
+    """Policy versions in the bag (also while it is being recorded: its complete chunks)."""
     from nf_bags import reader
 
-    return [int(p.version) for p in reader.policies(bag)]
+    try:
+        return [int(p.version) for p in reader.policies(bag)]
+    except bagfile.BagError:  # not created yet
+        return []
 
 
 def _publisher(durability: str, version: int, domain: int, tmp: Path, linger: float = 60.0) -> RosProcess:
@@ -93,7 +97,7 @@ def test_a_policy_latched_before_the_recorder_started_is_in_the_bag(tmp_path, mo
         rec = _record(bag, domain, tmp_path, *(["--topics", "/policy_parameters"] if mode == "topics" else []))
         try:
             _recording(rec)
-            _wait(lambda: False, 1.5)  # history is delivered on matching
+            _wait(lambda: _versions(bag) == [3], 30)  # history comes on matching, in the next chunk (1 s)
         finally:
             assert rec.stop() == 0, rec.log()
     finally:
@@ -113,7 +117,8 @@ def test_a_latched_policy_is_taken_when_a_volatile_publisher_shares_the_topic(tm
         rec = _record(bag, domain, tmp_path, "--topics", "/policy_parameters")
         try:
             _recording(rec)
-            _wait(lambda: False, 2.0)
+            # the recorder may see the volatile publisher first: the latched one is taken once it is seen
+            _wait(lambda: _versions(bag) == [4], 30)
         finally:
             assert rec.stop() == 0, rec.log()
     finally:
@@ -136,7 +141,7 @@ def test_a_latched_publisher_joining_after_a_volatile_one_left_is_taken(tmp_path
         latched = _publisher("transient_local", 2, domain, tmp_path)
         try:
             assert _wait(lambda: "publishers changed" in rec.log(), 30), rec.log()
-            _wait(lambda: False, 2.0)
+            _wait(lambda: _versions(bag) == [2], 30)
         finally:
             latched.stop()
     finally:

@@ -212,6 +212,9 @@ class RecorderNode(Node):
             rec.catchup = self.create_subscription(rec.cls, topic, self._on_message(topic, rec, True),
                                                    self._sub_qos(keep, True), raw=True)
             rec.catchup_until = now + DEDUP_SECONDS
+            if not first:
+                self.get_logger().info(f"{topic}: a transient-local publisher joined volatile ones: taking its "
+                                       f"latched history")
         elif all_latched and rec.catchup is not None:
             self.destroy_subscription(rec.catchup)
             rec.catchup = None
