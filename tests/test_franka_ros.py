@@ -65,7 +65,7 @@ def test_stack_holds_without_a_policy_then_follows_one(tmp_path):
             x0 = np.array(status.x)
             goal = x0 + np.array([0.03, 0.0, -0.03])
             publisher = probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", LATCHED)
-            publisher.publish(policy_msg(goal, version=7, stiffness=2000.0, damping=120.0))
+            publisher.publish(policy_msg(goal, version=7, stiffness=3000.0, damping=150.0))
             assert probe.spin_until(lambda: statuses[-1][1].policy_version == 7, 30), stack.log()
 
             def error() -> float:

@@ -319,7 +319,7 @@ class FrankaDriverLoop:
         while not stop.is_set():
             try:
                 self._session(stop)
-            except self.franka_errors as exc:
+            except Exception as exc:  # libfranka's (and anything else): the loop must not die
                 self._on_franka_error(exc)
                 if not self._wait_for_recovery(stop):
                     return
@@ -381,13 +381,12 @@ class FrankaDriverLoop:
     def _on_franka_error(self, exc: BaseException) -> None:
         """A reflex or a lost connection: torque control has ended. Abort, latch the hold, keep why."""
         self.exceptions += 1
-        self.in_error = True
         text = f"{type(exc).__name__}: {exc}"
         try:
             errors = self.robot.read_once().last_motion_errors
             if errors:
                 text += f" (last motion errors: {errors})"
-        except self.franka_errors:
+        except Exception:  # the robot may be gone (pylibfranka then raises a plain RuntimeError)
             pass
         self.last_error = text[:500]
         loop = self.host.loop
@@ -399,6 +398,7 @@ class FrankaDriverLoop:
             # hold after the restart until a person clears it (automatic recovery goes on by itself)
             loop.controller.fault = f"libfranka error: {self.last_error}"[:300]
             loop.faults += 1
+        self.in_error = True  # last: whoever sees it sees the rest done
 
     def _wait_for_recovery(self, stop: threading.Event) -> bool:
         """After an error: recover automatically (when configured) or wait for ``request_recovery``.
@@ -416,7 +416,7 @@ class FrankaDriverLoop:
         try:
             self.robot.automatic_error_recovery()
             self.recoveries += 1
-        except self.franka_errors as exc:
+        except Exception as exc:  # still gone: the next session fails again and we wait again
             self.exceptions += 1
             self.last_error = f"recovery failed: {type(exc).__name__}: {exc}"[:500]
         return True
