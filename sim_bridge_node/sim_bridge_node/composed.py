@@ -5,8 +5,9 @@ node. Each step: posted work (``ControllerHost.service``), the state, the contro
 (``ControllerHost.tick``), one physics step with it, then ``after_step`` (the node publishes
 joint states and the rest). No DDS between state and torque.
 
-- lockstep: as fast as the physics and the controller allow; when the controller would leave a
-  state unanswered (idle_mode "pause" between episodes) the thread sleeps until work is posted.
+- lockstep: during episodes as fast as the physics and the controller allow; between episodes at
+  most real time, and when the controller would leave a state unanswered (idle_mode "pause") the
+  thread sleeps until work is posted.
 - realtime: one step per ``dt`` of wall clock, like a robot's driver; the loop times itself
   (``TickTiming``): state-to-command latency, tick period, ticks that start late.
 
@@ -140,6 +141,8 @@ class SimDriverLoop:
 
     def _run_lockstep(self, stop: threading.Event) -> None:
         bridge, host = self.bridge, self.host
+        dt = bridge.dt
+        due = time.perf_counter()
         while not stop.is_set():
             host.service()
             if not host.wants_tick(bridge.stamp_ns):
@@ -148,6 +151,17 @@ class SimDriverLoop:
             self._step(time.monotonic())
             bridge.step_commanded()
             self.after_step()
+            if host.loop.episode is not None:
+                due = time.perf_counter()  # episodes: as fast as the physics allows
+                continue
+            # between episodes (idle_mode hold or policy) at most real time: faster would only
+            # flood the monitoring topics and take the CPU from the learner's update
+            due += dt
+            wait = due - time.perf_counter()
+            if wait > 0.0:
+                time.sleep(wait)
+            elif -wait > 10 * dt:
+                due = time.perf_counter()
 
     def _run_realtime(self, stop: threading.Event) -> None:
         bridge, host, timing = self.bridge, self.host, self.timing
