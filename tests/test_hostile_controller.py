@@ -184,7 +184,7 @@ IMPLAUSIBLE = {
     "q beyond 2 pi": (np.r_[Q0[:2], 7.0, Q0[3:]], REST, "position implausible"),
     "q 10 deg past the limit": (np.r_[Q0[:3], panda_spec.Q_MAX[3] + math.radians(10), Q0[4:]], REST,
                                 "position implausible"),
-    "dq 4 x limit": (Q0, np.r_[REST[:6], 4.0 * panda_spec.DQ_MAX[6]], "velocity implausible"),
+    "dq 12 x limit": (Q0, np.r_[REST[:6], 12.0 * panda_spec.DQ_MAX[6]], "velocity implausible"),
     "dq -1e6": (Q0, np.r_[-1e6, REST[1:]], "velocity implausible"),
     "q NaN": (np.r_[Q0[:5], np.nan, Q0[6]], REST, "not finite"),
     "dq -inf": (Q0, np.r_[REST[:4], -np.inf, REST[5:]], "not finite"),
@@ -212,7 +212,7 @@ def test_states_within_the_margins_are_accepted(arm):
     loop = _loop(arm, idle_mode="hold")
     feed = _Feed(loop)
     near = np.r_[Q0[:3], panda_spec.Q_MAX[3] + math.radians(2), Q0[4:]]
-    fast = 2.8 * panda_spec.DQ_MAX * np.sign(np.arange(7) - 3.5)
+    fast = 9.5 * panda_spec.DQ_MAX * np.sign(np.arange(7) - 3.5)
     for q, dq in ((near, REST), (Q0, fast), (panda_spec.Q_MIN, REST), (_mid_limits(), -fast)):
         _, new = feed(q=q, dq=dq)
         assert new == "" and loop.fault == ""

@@ -16,6 +16,7 @@ from nf_msgs.msg import ControllerStatus, RolloutChunk
 from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
 from rclpy.action import ActionClient
 from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
 
 from learner_node.config import TrainConfig
 from learner_node.trainer import Trainer, metrics_without_timing
@@ -54,7 +55,7 @@ def stop(procs: list[RosProcess]) -> None:
 
 
 def learner(domain: int, out: Path, log: Path, iterations: int, settings: dict, config: str = CONFIG) -> RosProcess:
-    args = ["-m", "learner_node.node", "--ros-args", "--params-file", config,
+    args = ["-m", "learner_node.node", "--ros-args", "--params-file", config, "-p", "learner_node:on_safe_hold:=auto",
             "-p", f"learner_node:out_dir:={out}", "-p", f"learner_node:iterations:={iterations}"]
     for key, value in settings.items():
         args += ["-p", f"learner_node:{key}:={value}" if key != "episode_seconds" else f"{key}:={value}"]
@@ -122,6 +123,44 @@ def test_parameter_exploration_over_ros_equals_the_in_process_trainer(tmp_path):
     assert_same_learning(over_ros[:1], in_process[:1])
     assert over_ros[1]["return_mean"] == pytest.approx(in_process[1]["return_mean"], rel=1e-4)
     assert "policy version 1001 installed" in logs(arm) and "policy version 2000 installed" in logs(arm)
+
+
+def test_a_latched_fault_makes_the_learner_wait_for_a_person_and_go_on_without_losing_the_iteration(tmp_path):
+    """on_safe_hold: wait (the default, for hardware): a fault latched mid-run (a bad joint state
+    from a third node) aborts the episode; the learner waits until clear_fault is called, then runs
+    the episode again and finishes the iteration with nothing dropped."""
+    domain = allocate_domain_id()
+    probe = Probe(domain)
+    status = probe.collect(ControllerStatus, "controller_status", RELIABLE)
+    arm = stack(domain, tmp_path, "hold", composed=False)
+    settings = {**SHORT, "rollouts_per_iter": 3}
+    try:
+        args = ["-m", "learner_node.node", "--ros-args", "--params-file", CONFIG,
+                "-p", f"learner_node:out_dir:={tmp_path / 'run'}", "-p", "learner_node:iterations:=1",
+                "-p", "episode_seconds:=0.5", "-p", "learner_node:rollouts_per_iter:=3",
+                "-p", "learner_node:eval_episodes:=0"]
+        lrn = RosProcess(args, domain, tmp_path / "learner.log")
+        assert probe.spin_until(lambda: status and status[-1][1].mode == ControllerStatus.MODE_RUNNING, 120), \
+            lrn.log() + logs(arm)
+        bad = JointState(name=list(panda_spec.JOINT_NAMES), position=[float("nan")] * 7, velocity=[0.0] * 7)
+        pub = probe.node.create_publisher(JointState, "joint_states", RELIABLE)
+        assert probe.spin_until(lambda: (pub.publish(bad), status[-1][1].mode == ControllerStatus.MODE_SAFE_HOLD)[1],
+                                20), logs(arm)
+        assert probe.spin_until(lambda: "waiting for a person" in lrn.log(), 30), lrn.log()
+        probe.spin_for(2.0)
+        assert lrn.alive() and status[-1][1].mode == ControllerStatus.MODE_SAFE_HOLD  # it waits, it does not give up
+        client = probe.node.create_client(Trigger, "/nf_controller/clear_fault")
+        assert client.wait_for_service(timeout_sec=10.0)
+        cleared = client.call_async(Trigger.Request())
+        assert probe.spin_until(cleared.done, 10.0) and cleared.result().success
+        assert wait_exit(lrn, 240) == 0, lrn.log() + logs(arm)
+        assert "safe hold cleared: going on" in lrn.log()
+    finally:
+        stop(arm)
+        probe.close()
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert [r["iteration"] for r in metrics] == [1] and metrics[0]["dropped_episodes"] == 0
+    assert_same_learning(metrics, in_process_history(1, settings))
 
 
 def test_learner_killed_mid_iteration_holds_the_arm_and_resumes_without_losing_an_iteration(tmp_path):

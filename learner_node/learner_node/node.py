@@ -23,16 +23,17 @@ from typing import Any
 
 import rclpy
 from nf_msgs.action import RunEpisode
+from nf_msgs.msg import ControllerStatus, RolloutChunk
 from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
-from nf_msgs.msg import RolloutChunk
 from rclpy.action import ActionClient
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_srvs.srv import Trigger
 
 from nf_controller_node.policy_params import PolicyParameters
 from nf_controller_node.ros_runtime import run_node
-from nf_controller_node.topics import POLICY_PARAMETERS, ROLLOUTS, RUN_EPISODE
+from nf_controller_node.topics import CONTROLLER_STATUS, POLICY_PARAMETERS, ROLLOUTS, RUN_EPISODE
 
 from .config import TrainConfig
 from .rollout import EpisodeRecord
@@ -48,7 +49,14 @@ NODE_PARAMETERS = {  # learner_node's own settings besides TrainConfig's
     "episode_timeout": 120.0,  # s of wall time for one episode (lockstep runs at a few x real time)
     "episode_retries": 2,  # an incomplete episode is run again this often (same seeds), then dropped
     "server_timeout": 60.0,  # s to wait for the controller's action server
+    # A controller in safe hold (a latched fault) fails every episode until the fault is cleared.
+    # "wait": wait for a person to call nf_controller/clear_fault (hardware), then go on;
+    # "auto": clear it at once (simulation only: the next reset puts the arm somewhere new).
+    "on_safe_hold": "wait",
+    "clear_fault_service": "nf_controller/clear_fault",
 }
+ON_SAFE_HOLD = ("wait", "auto")
+AUTO_CLEARS_PER_EPISODE = 3  # "auto": an episode that faults this often after clearing is dropped
 _FIELDS = {f for f in TrainConfig.__dataclass_fields__}
 
 
@@ -73,7 +81,12 @@ class LearnerNode(Node):
                              "train the MLP baseline in process with `train --policy mlp`")
         if self.cfg.task == "block":
             raise ValueError("the block task has no arm; train it in process with `train --task block`")
+        if self.settings["on_safe_hold"] not in ON_SAFE_HOLD:
+            raise ValueError(f"on_safe_hold must be one of {ON_SAFE_HOLD}, got {self.settings['on_safe_hold']!r}")
         self.chunks = ChunkCollector()
+        self.controller_mode: int | None = None  # latest ControllerStatus mode
+        self.create_subscription(ControllerStatus, CONTROLLER_STATUS, self._on_status, 10)
+        self._clear = self.create_client(Trigger, self.settings["clear_fault_service"])
         self._policy_pub = self.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, POLICY_QOS)
         self.create_subscription(RolloutChunk, ROLLOUTS, self.chunks.add, CHUNK_QOS)
         self._action = ActionClient(self, RunEpisode, RUN_EPISODE)
@@ -90,6 +103,24 @@ class LearnerNode(Node):
         params.version = version
         self._policy_pub.publish(params.fill_msg(PolicyParametersMsg()))
         return version
+
+    def _on_status(self, msg: ControllerStatus) -> None:
+        self.controller_mode = int(msg.mode)
+
+    def in_safe_hold(self) -> bool:
+        """The controller's latest status says safe hold (a latched fault)."""
+        return self.controller_mode == ControllerStatus.MODE_SAFE_HOLD
+
+    def clear_fault(self, timeout: float = 10.0) -> str:
+        """Call the controller's clear_fault service; its answer, or why there was none."""
+        if not self._clear.wait_for_service(timeout_sec=timeout):
+            return f"no {self.settings['clear_fault_service']} service"
+        with self.spin_lock:
+            future = self._clear.call_async(Trigger.Request())
+        if not _wait(future, time.monotonic() + timeout):
+            return "clear_fault did not answer"
+        self.controller_mode = None  # the next status tells
+        return future.result().message
 
     def wait_for_server(self, timeout: float) -> bool:
         """True once the controller's ``run_episode`` action server is up."""
@@ -170,9 +201,11 @@ class RosTraining:
             LOG.info("resuming from %s after iteration %d", checkpoint, self.trainer.iteration)
 
     def episode(self, version: int, start: int | None, noise: int, deterministic: bool) -> EpisodeRecord | None:
-        """One episode with retries; None when it was dropped (reported)."""
+        """One episode with retries; None when it was dropped (reported). A controller in safe hold
+        is waited for (or cleared, ``on_safe_hold: auto``) without using up an attempt."""
         s = self.node.settings
-        for attempt in range(1 + int(s["episode_retries"])):
+        attempt = clears = 0
+        while attempt < 1 + int(s["episode_retries"]):
             if self.stop.is_set():
                 return None
             try:
@@ -180,9 +213,35 @@ class RosTraining:
             except EpisodeFailedError as exc:
                 LOG.error("episode (start seed %s, noise seed %s) failed, attempt %d: %s", start, noise,
                           attempt + 1, exc)
+                if "safe hold" in str(exc) and clears < AUTO_CLEARS_PER_EPISODE:
+                    clears += 1
+                    if self.recover_from_safe_hold():
+                        continue
+                attempt += 1
         self.dropped += 1
         LOG.error("episode dropped after %d attempts (%d dropped so far)", 1 + int(s["episode_retries"]), self.dropped)
         return None
+
+    def recover_from_safe_hold(self) -> bool:
+        """After an episode failed on the controller's safe hold: clear it ("auto") or wait until a
+        person does ("wait"). False when stopped meanwhile."""
+        node = self.node
+        if node.settings["on_safe_hold"] == "auto":
+            LOG.info("controller in safe hold: clearing it (on_safe_hold: auto): %s", node.clear_fault())
+            return True
+        LOG.error("controller in safe hold: waiting for a person to check the arm and call %s "
+                  "(the iteration goes on afterwards)", node.settings["clear_fault_service"])
+        node.controller_mode = None
+        next_note = time.monotonic() + 30.0
+        while not self.stop.is_set():
+            if node.controller_mode is not None and not node.in_safe_hold():
+                LOG.info("safe hold cleared: going on")
+                return True
+            if time.monotonic() > next_note:
+                LOG.error("still waiting for %s", node.settings["clear_fault_service"])
+                next_note += 30.0
+            time.sleep(0.05)
+        return False
 
     def run(self) -> int:
         """Train to ``cfg.iterations``, then evaluate; returns an exit code."""

@@ -52,7 +52,9 @@ def node_commands(config: Path, run_dir: Path, iterations: int, extra: Sequence[
         cmds = {"sim": [py, "-m", "sim_bridge_node.node", *params],
                 "controller": [py, "-m", "nf_controller_node.node", *params, *lockstep_controller]}
     cmds |= {
-        "learner": [py, "-m", "learner_node.node", *params, "-p", f"learner_node:out_dir:={run_dir / 'learner'}",
+        # simulation: a latched fault is cleared at once (the next reset puts the arm somewhere new)
+        "learner": [py, "-m", "learner_node.node", *params, "-p", "learner_node:on_safe_hold:=auto",
+                    "-p", f"learner_node:out_dir:={run_dir / 'learner'}",
                     "-p", f"learner_node:iterations:={iterations}", *extra],
     }
     if importlib.util.find_spec("nf_bags") is not None:
