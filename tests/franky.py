@@ -26,9 +26,9 @@ class DriverRig:
         import pylibfranka as franka
 
         self.franka = franka
-        self.robot = franka.Robot(HOST, franka.RealtimeConfig.kIgnore)
-        state = self.robot.read_once()
-        self.identification = identify("auto", state, self.robot.load_model())
+        robot = franka.Robot(HOST, franka.RealtimeConfig.kIgnore)
+        state = robot.read_once()
+        self.identification = identify("auto", state, robot.load_model())
         self.spec = spec = self.identification.spec
         self.arm = spec.arm_model(panda_spec.GEAR_PART)
         self.loop = ControlLoop(self.arm, TorqueLawConfig(gravity_compensation=False),
@@ -41,8 +41,10 @@ class DriverRig:
         self.limits: list[np.ndarray] = []
         errors = (franka.FrankaException, franka.ControlException, franka.CommandException,
                   franka.NetworkException, franka.RealtimeException, franka.InvalidOperationException)
-        self.driver = FrankaDriverLoop(self.robot, self.host, self.tcp_arm.tcp_position,
-                                       config or DriverConfig(), franka.Torques, errors, after_tick=self._record)
+        self.driver = FrankaDriverLoop(robot, self.host, self.tcp_arm.tcp_position, config or DriverConfig(),
+                                       franka.Torques, errors, after_tick=self._record,
+                                       connect=lambda: franka.Robot(HOST, franka.RealtimeConfig.kIgnore))
+        del robot  # the loop owns the connection
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -76,5 +78,4 @@ class DriverRig:
         if self._thread is not None:
             self._thread.join(10.0)
         self.driver.robot = None
-        self.robot = None
         gc.collect()

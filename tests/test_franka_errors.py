@@ -4,6 +4,7 @@ error text for /diagnostics and waits for a recovery instead of dying."""
 
 from __future__ import annotations
 
+import signal
 import time
 
 import numpy as np
@@ -52,4 +53,31 @@ def test_robot_lost_mid_episode_aborts_it_latches_the_hold_and_keeps_the_error(t
     finally:
         if rig is not None:
             rig.stop()
+        sim.stop()
+
+
+def test_robot_stalled_past_the_udp_timeout_recovers_automatically_when_asked(tmp_path):
+    sim = FrankySim(tmp_path / "franky-sim.log")
+    rig = None
+    try:
+        rig = DriverRig(idle_mode="hold", config=DriverConfig(automatic_error_recovery=True, recovery_wait=0.5))
+        rig.start()
+        rig.run_for(0.2)
+        sim.proc.send_signal(signal.SIGSTOP)  # the robot stops sending states (by PID)
+        deadline = time.monotonic() + 30.0
+        while rig.driver.exceptions == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        sim.proc.send_signal(signal.SIGCONT)
+        d = rig.driver
+        assert d.exceptions >= 1 and "Timeout" in d.last_error, d.last_error
+        assert not rig.loop.fault.startswith("libfranka")  # automatic: no latched hold
+        deadline = time.monotonic() + 60.0
+        while (d.sessions < 2 or d.in_error) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert d.sessions >= 2 and d.recoveries >= 1 and not d.in_error, d.last_error
+        rig.run_for(0.2)  # torque control goes on
+    finally:
+        if rig is not None:
+            rig.stop()
+        sim.proc.send_signal(signal.SIGCONT)
         sim.stop()

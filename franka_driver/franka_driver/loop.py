@@ -27,6 +27,7 @@ episode asked for meanwhile starts its reset motion once torque control is back.
 from __future__ import annotations
 
 import array
+import gc
 import math
 import threading
 import time
@@ -173,9 +174,11 @@ class FrankaDriverLoop:
     def __init__(self, robot: Any, host: ControllerHost, tcp: Callable[[np.ndarray], np.ndarray],
                  config: DriverConfig, torque_factory: Callable[[list[float]], Any],
                  exceptions: tuple[type[BaseException], ...] = (RuntimeError,),
-                 after_tick: Callable[[np.ndarray, np.ndarray, np.ndarray, int], None] | None = None) -> None:
+                 after_tick: Callable[[np.ndarray, np.ndarray, np.ndarray, int], None] | None = None,
+                 connect: Callable[[], Any] | None = None) -> None:
         config.check()
         self.robot = robot
+        self.connect = connect  # a new connection when the old one is broken (libfranka's network errors)
         self.host = host
         self.tcp = tcp
         self.config = config
@@ -317,17 +320,27 @@ class FrankaDriverLoop:
         """Torque control until ``stop`` is set (call on the driver thread). A libfranka error ends
         a session; see the module docstring for what follows."""
         while not stop.is_set():
+            failed = False
             try:
                 self._session(stop)
             except Exception as exc:  # libfranka's (and anything else): the loop must not die
                 self._on_franka_error(exc)
-                if not self._wait_for_recovery(stop):
-                    return
+                failed = True
+            # outside the except block: the exception's traceback (and libfranka's motion handle in
+            # it) is gone before a recovery reconnects
+            if failed and not self._wait_for_recovery(stop):
+                return
 
     def _session(self, stop: threading.Event) -> None:
+        control = self.robot.start_torque_control()
+        try:
+            self._control(control, stop)
+        finally:
+            control = None  # libfranka's motion handle goes with the session
+
+    def _control(self, control: Any, stop: threading.Event) -> None:
         host, loop = self.host, self.host.loop
         ctrl = loop.controller
-        control = self.robot.start_torque_control()
         self.sessions += 1
         self.in_error = False
         self.timing.restart()
@@ -414,11 +427,28 @@ class FrankaDriverLoop:
             return False
         self._recover.clear()
         try:
+            self.robot.stop()  # no motion may be left open on the robot's side
+        except Exception:
+            pass
+        try:
+            self.robot.automatic_error_recovery()
+            self.recoveries += 1
+            return True
+        except Exception as exc:  # after a network error libfranka's connection is unusable
+            problem = f"{type(exc).__name__}: {exc}"
+        if self.connect is None:
+            self.exceptions += 1
+            self.last_error = f"recovery failed: {problem}"[:500]
+            return True
+        self.robot = None  # close the broken connection first: the robot serves one client
+        gc.collect()
+        try:
+            self.robot = self.connect()
             self.robot.automatic_error_recovery()
             self.recoveries += 1
         except Exception as exc:  # still gone: the next session fails again and we wait again
             self.exceptions += 1
-            self.last_error = f"recovery failed: {type(exc).__name__}: {exc}"[:500]
+            self.last_error = f"reconnect failed: {type(exc).__name__}: {exc}"[:500]
         return True
 
 

@@ -112,8 +112,9 @@ class FrankaDriverNode(Node):
         self.exceptions = (franka.FrankaException, franka.ControlException, franka.CommandException,
                            franka.NetworkException, franka.RealtimeException, franka.InvalidOperationException)
         mode = franka.RealtimeConfig.kEnforce if p["realtime"] == "enforce" else franka.RealtimeConfig.kIgnore
+        self._realtime_mode = mode
         try:
-            self.robot = franka.Robot(p["robot_ip"], mode)
+            self.robot = self._connect()
             state = self.robot.read_once()
             model = self.robot.load_model()
         except self.exceptions as exc:
@@ -143,6 +144,10 @@ class FrankaDriverNode(Node):
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
         self._logged_error = ""
 
+    def _connect(self) -> Any:
+        """A new libfranka connection to ``robot_ip``."""
+        return self.franka.Robot(self.params["robot_ip"], self._realtime_mode)
+
     # ------------------------------------------------------------------ composition
     def attach(self, controller: Any) -> FrankaDriverLoop:
         """Build the torque loop around a composed ``NFControllerNode``; refuse settings that are
@@ -169,7 +174,8 @@ class FrankaDriverNode(Node):
         law.torque_limits[:] = np.minimum(law.torque_limits, spec.torque_limits)
         tcp = self._tcp_arm.tcp_position
         self.driver = FrankaDriverLoop(self.robot, controller.host, tcp, self.config, self.franka.Torques,
-                                       self.exceptions, after_tick=self._after_tick)
+                                       self.exceptions, after_tick=self._after_tick, connect=self._connect)
+        self.robot = None  # the loop owns the connection (and replaces it after a network error)
         self.get_logger().warn(
             "EFFECTIVE SAFETY VALUES: "
             f"arm {spec.kind}, gravity_compensation {cp['gravity_compensation']} (robot adds g(q)), "
