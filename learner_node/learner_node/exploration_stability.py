@@ -15,7 +15,9 @@ draws them: V is that rollout's own controller's). Per rollout:
   rollout "rises" if this exceeds ``tolerance`` (integration and sampling error: see ``none``);
 - ``work``: the work the exploration does on the arm, sum of f_expl . xdot dt, J, with f_expl the
   noise (action) or the drawn controller's force minus the policy's (params), both at the TCP;
-- ``gain``: V(end) - V(start), J (passivity: <= 0 without an external force).
+- ``gain``: V(end) - V(start), J (passivity: <= 0 without an external force);
+- ``limited_ms``: milliseconds in which a joint torque hit its limit or the torque rate limit: the
+  applied torque is then not the stable law's, and the proof does not cover those steps.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
 from nf_controller_node.flow_eval import FlowEvaluator
+from nf_controller_node.torque_law import CLAMPED, RATE_LIMITED
 from sim_bridge_node.env import InsertionEnv
 
 from .config import PHYSICS_DT, TrainConfig
@@ -55,6 +58,7 @@ class RolloutEnergy:
     gain: float  # J, V(end) - V(start)
     v0: float  # J, V at the start
     fault: str
+    limited_ms: int = 0  # milliseconds whose torque hit the torque or rate limit (the law is then not exact)
 
 
 def free_space_rollout(
@@ -80,10 +84,12 @@ def free_space_rollout(
     v = ctrl.lyapunov(env.q, env.dq)
     v0 = v_min = v
     rise = work = 0.0
+    limited = 0
     for k in range(steps):
         if noisy and k % per_hold == 0:
             eps = sigma * rng.standard_normal(3)
         tau = ctrl.step(env.q, env.dq, eps if noisy else None)
+        limited += int(bool(ctrl.flags & (CLAMPED | RATE_LIMITED)))
         if noisy:
             f = eps
         else:
@@ -94,7 +100,7 @@ def free_space_rollout(
         v = ctrl.lyapunov(env.q, env.dq)
         v_min = min(v_min, v)
         rise = max(rise, v - v_min)
-    return RolloutEnergy(start_seed, rise, work, v - v0, v0, ctrl.fault)
+    return RolloutEnergy(start_seed, rise, work, v - v0, v0, ctrl.fault, limited)
 
 
 def measure(
@@ -136,12 +142,15 @@ def measure(
 def summarize(records: list[RolloutEnergy], tolerance: float = DEFAULT_TOLERANCE) -> dict[str, Any]:
     """Fraction of rollouts whose V rises beyond ``tolerance``; work and V gain statistics."""
     rise = np.array([r.rise for r in records])
+    limited = np.array([r.limited_ms > 0 for r in records])
     work = np.array([r.work for r in records])
     gain = np.array([r.gain for r in records])
     return {
         "rollouts": len(records),
         "tolerance_J": tolerance,
         "rising_fraction": float(np.mean(rise > tolerance)),
+        "limited_fraction": float(np.mean(limited)),
+        "rising_unlimited_fraction": float(np.mean((rise > tolerance) & ~limited)),
         "rise_max_J": float(rise.max()),
         "rise_median_J": float(np.median(rise)),
         "work_mean_J": float(work.mean()),
@@ -199,7 +208,8 @@ def main(argv: list[str] | None = None) -> int:
         recs = measure(policy, scheme, args.rollouts, args.seconds, sigma=sigma, hold=hold, explorer=explorer)
         row = {"scheme": scheme, "sigma_N": sigma if scheme == "action" else None,
                "hold_s": hold if scheme == "action" else None,
-               "param_sigma_gains": float(torch.exp(explorer.log_sigma_gains).mean()) if scheme == "params" else None,
+               "param_sigma_gains": float(torch.exp(explorer.log_sigma_gains.detach()).mean())
+               if scheme == "params" else None,
                **summarize(recs, args.tolerance)}
         rows.append(row)
         print(json.dumps(row), flush=True)
