@@ -46,15 +46,18 @@ class ManagedProcess:
                 sys.stdout.write(f"[{self.name}] {line}" if not line.startswith("[learner]") else line)
                 sys.stdout.flush()
 
-    def wait_for_watched(self, timeout: float, alive: Sequence[ManagedProcess] = ()) -> list[str]:
-        """Wait until every ``watch`` text given at start has appeared in a line of output; the texts
-        still missing (empty on success) when ``timeout`` s pass or this process or one of ``alive`` exits."""
+    def wait_for_watched(self, timeout: float, alive: Sequence[ManagedProcess] = (),
+                         texts: Sequence[str] | None = None) -> list[str]:
+        """Wait until every ``watch`` text given at start (or only ``texts`` of them) has appeared in a
+        line of output; the texts still missing (empty on success) when ``timeout`` s pass or this
+        process or one of ``alive`` exits."""
         deadline = time.monotonic() + timeout
         with self._seen:
             while True:
+                missing = [t for t in self._unseen if texts is None or t in texts]
                 left = deadline - time.monotonic()
-                if not self._unseen or left <= 0 or not all(p.running() for p in (self, *alive)):
-                    return list(self._unseen)
+                if not missing or left <= 0 or not all(p.running() for p in (self, *alive)):
+                    return missing
                 self._seen.wait(timeout=min(left, 0.2))
 
     @property

@@ -35,6 +35,10 @@ DEFAULT_ITERATIONS = 10  # about 7-8 minutes on the 2-core development machines
 # discovering topics would miss it (a 0.5 s episode's single rollout chunk was lost that way in CI).
 RECORDED_BEFORE_LEARNING = ("/joint_states", "/effort_controller/commands", "/rollouts")
 RECORDER_READY = tuple(f"recording {t} (" for t in RECORDED_BEFORE_LEARNING)  # lines to watch for
+# The learner publishes the policy (latched) when it starts: the recorder must pick it up (a bag
+# without it cannot be re-simulated); checked after the learner starts, without holding it up.
+POLICY_READY = "recording /policy_parameters ("
+POLICY_WAIT_SECONDS = 60.0
 RECORDER_WAIT_SECONDS = 120.0  # the controller's first start compiles its kernels (~15 s here)
 
 
@@ -67,7 +71,7 @@ def wait_for_recorder(recorder: ManagedProcess, others: Sequence[ManagedProcess]
     """Block until the recorder (started with ``watch=RECORDER_READY``) records ``RECORDED_BEFORE_LEARNING``;
     False (with a warning that the bag may miss the first episodes) when it does not within ``timeout`` s
     or a process exited."""
-    missing = recorder.wait_for_watched(timeout, others)
+    missing = recorder.wait_for_watched(timeout, others, texts=RECORDER_READY)
     if missing:
         topics = ", ".join(m.split()[1] for m in missing)
         print(f"[stack] warning: the recorder is not recording {topics} after {timeout:.0f} s or a node exited; "
@@ -112,12 +116,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name in ("recorder", *arm):
             if name in cmds:
                 procs[name] = ManagedProcess(name, cmds[name], env, run_dir / "logs",
-                                             watch=RECORDER_READY if name == "recorder" else ())
+                                             watch=(*RECORDER_READY, POLICY_READY) if name == "recorder" else ())
         if "recorder" in procs:
             wait_for_recorder(procs["recorder"], [procs[n] for n in arm])
         dead = [n for n, p in procs.items() if not p.running()]
         if not dead:
             procs["learner"] = ManagedProcess("learner", cmds["learner"], env, run_dir / "logs")
+            if "recorder" in procs and procs["recorder"].wait_for_watched(
+                    POLICY_WAIT_SECONDS, [procs["learner"]], texts=(POLICY_READY,)):
+                print(f"[stack] warning: the recorder is not recording /policy_parameters {POLICY_WAIT_SECONDS:.0f} s "
+                      "after the learner started: the bag may not hold the policies", flush=True)
         while not dead and procs["learner"].running():
             time.sleep(0.2)
             dead = [n for n, p in procs.items() if n != "learner" and not p.running()]
