@@ -76,6 +76,8 @@ def test_robot_stalled_past_the_udp_timeout_recovers_automatically_when_asked(tm
             time.sleep(0.05)
         assert d.sessions >= 2 and d.recoveries >= 1 and not d.in_error, d.last_error
         rig.run_for(0.2)  # torque control goes on
+        # the new connection's clock starts again: the stamps the controller sees keep increasing
+        assert rig.loop.bad_inputs == 0 and "out of order" not in rig.loop.fault, rig.loop.fault
     finally:
         if rig is not None:
             rig.stop()

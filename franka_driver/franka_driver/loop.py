@@ -197,6 +197,7 @@ class FrankaDriverLoop:
         self.success = False
         self.x = np.full(3, np.nan)  # TCP at the last state
         self._reset: _Reset | None = None
+        self._stamp_offset = 0  # ns added to the robot's clock: a new connection may start it at zero
         self._recover = threading.Event()
         self._deferred: tuple[Callable[[], None], Future] | None = None  # a reset waiting for a recovery
         self.resets_done = 0
@@ -359,13 +360,19 @@ class FrankaDriverLoop:
         perf = time.perf_counter
         make = self.torques
         after = self.after_tick
+        rebase = True  # first state of this session: keep the stamps increasing across reconnects
         while not stop.is_set():
             host.service()
             state, duration = control.readOnce()
             read = perf()
             q = np.array(state.q)
             dq = np.array(state.dq)
-            stamp_ns = int(state.time.to_sec() * 1e9 + 0.5)
+            stamp_ns = int(state.time.to_sec() * 1e9 + 0.5) + self._stamp_offset
+            if rebase:
+                rebase = False
+                if stamp_ns <= host.last_stamp_ns:
+                    self._stamp_offset += host.last_stamp_ns + 1_000_000 - stamp_ns
+                    stamp_ns = host.last_stamp_ns + 1_000_000
             tau = host.tick(stamp_ns, q, dq, time.monotonic())
             control.writeOnce(make(tau.tolist()))
             timing.tick(read, perf(), duration.to_sec())
