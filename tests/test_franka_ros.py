@@ -92,6 +92,8 @@ def test_stack_holds_without_a_policy_then_follows_one(tmp_path):
         probe.close()
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(1200)  # reset motions on a simulator that runs below real time on a loaded machine
 def test_learning_through_reset_motions_and_a_learner_killed_mid_episode(tmp_path):
     domain = allocate_domain_id()
     probe = Probe(domain)
