@@ -103,3 +103,12 @@ def test_none_resets_to_task_default_and_table_lists_every_field():
     table = cfg.table()
     for name in cfg.to_dict():
         assert f"| {name} " in table
+
+
+def test_gear_learn_yaml_is_gear_yaml_with_the_documented_sets():
+    """docs/results/gear_learned runs nf_report on gear.yaml with these --set values: the same settings."""
+    sets = {"stiffness_axial": "none", "flow_init": "identity", "gains": "learned", "exploration": "params",
+            "param_sigma_gains": "0.5", "param_lr": "0.1", "param_sigma_lr": "0.01", "param_sigma_decay": "0.97"}
+    learn = TrainConfig.from_sources(CONFIG_DIR / "gear_learn.yaml")
+    assert learn == TrainConfig.from_sources(CONFIG_DIR / "gear.yaml", sets)
+    assert learn.stiffness_matrix().tolist() == [[300.0, 0.0, 0.0], [0.0, 300.0, 0.0], [0.0, 0.0, 300.0]]
