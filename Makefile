@@ -29,8 +29,8 @@ bench-deps: setup
 	    || echo "[bench] warning: stable-baselines3 not installed; its comparison will be skipped"; \
 	fi
 
-run: setup  ## the whole stack learning the gear in simulation (lockstep); ARGS="--iterations 20" etc.
-	@$(ENV) && python -m nf_bringup.stack --config config/gear.yaml $(ARGS)
+run: setup  ## the whole stack learning the gear from a failing prior in simulation (composed, lockstep); ARGS="--iterations 30" etc.
+	@$(ENV) && python -m nf_bringup.stack --config config/gear_learn.yaml $(ARGS)
 
 clean:  ## remove build products (keeps .venv)
 	rm -rf ros2_ws/build ros2_ws/install ros2_ws/log ros2_ws/.build.sha256 env.sh
