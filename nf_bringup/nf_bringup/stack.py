@@ -83,7 +83,7 @@ def wait_for_recorder(recorder: ManagedProcess, others: Sequence[ManagedProcess]
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``run_stack``."""
     parser = argparse.ArgumentParser(prog="run_stack", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", type=Path, default=Path("config/gear_learn.yaml"), help="parameters file of the task")
+    parser.add_argument("--config", type=Path, default=Path("config/gear_learn.yaml"), help="parameters file")
     parser.add_argument("--iterations", type=int, default=DEFAULT_ITERATIONS, help="PPO iterations")
     parser.add_argument("--out", type=Path, default=None, help="run folder (default runs/<date-time>)")
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: from the environment)")
