@@ -17,6 +17,7 @@ from nf_controller_node.episode import EpisodeRun, EpisodeSpec
 from nf_controller_node.flow_spec import FlowArchitecture
 from nf_controller_node.lyapunov import LyapunovMonitor
 from nf_controller_node.policy_params import PolicyParameters
+from nf_controller_node.torque_law import TorqueLawConfig
 
 # The names the fixes added are looked up when a test runs (so that, against the code before the
 # fixes, each test fails on its own instead of the whole module failing to import).
@@ -398,3 +399,13 @@ def test_flow_controller_hold_is_not_driven_by_an_absurd_velocity(arm):
     ctrl.reset_rate_limit()
     slow = np.full(7, 0.5)
     np.testing.assert_allclose(ctrl.hold(Q0, slow), _gravity(arm, Q0) - ctrl.law.hold_damping * slow, atol=1e-9)
+
+
+def test_first_command_of_a_controller_whose_driver_compensates_gravity_is_rate_limited(arm):
+    """Issue 14: a restarted controller's first command jumped 3.9 Nm in 1 ms against a hardware-like
+    driver. With the driver compensating gravity the arm gets nothing of ours before the first
+    command, so the rate limit starts from zero."""
+    loop = ControlLoop(arm, TorqueLawConfig(gravity_compensation=False), LoopConfig(idle_mode="hold"))
+    tau, new = loop.on_joint_state(list(panda_spec.JOINT_NAMES), Q0, REST, 1, 0.0)
+    assert new == "" or "policy" in new
+    assert np.all(np.abs(tau) <= MAX_STEP + 1e-9), tau
