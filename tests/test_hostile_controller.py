@@ -405,7 +405,12 @@ def test_first_command_of_a_controller_whose_driver_compensates_gravity_is_rate_
     """Issue 14: a restarted controller's first command jumped 3.9 Nm in 1 ms against a hardware-like
     driver. With the driver compensating gravity the arm gets nothing of ours before the first
     command, so the rate limit starts from zero."""
-    loop = ControlLoop(arm, TorqueLawConfig(gravity_compensation=False), LoopConfig(idle_mode="hold"))
+    loop = ControlLoop(arm, TorqueLawConfig(gravity_compensation=False), LoopConfig(idle_mode="policy"))
+    params = _params(arm)
+    params.x_ref = params.x_ref + np.array([0.1, 0.0, -0.1])  # far from the arm: a large first command
+    assert loop.set_policy(params)
     tau, new = loop.on_joint_state(list(panda_spec.JOINT_NAMES), Q0, REST, 1, 0.0)
-    assert new == "" or "policy" in new
+    assert new == ""
     assert np.all(np.abs(tau) <= MAX_STEP + 1e-9), tau
+    tau, _ = loop.on_joint_state(list(panda_spec.JOINT_NAMES), Q0, REST, 2, 0.0)
+    assert np.abs(tau).max() > 1.5 * MAX_STEP, "the flow does command more: the limit is what held the first one"
