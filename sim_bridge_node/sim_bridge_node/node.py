@@ -64,6 +64,8 @@ PARAMETERS = {
     "lockstep_resend": (0.1, "lockstep: s of wall time before an unanswered state is published again"),
     "task_status_rate": (50.0, "task_status messages per s of simulated time (0: off)"),
     "clock_period": (0.001, "s of simulated time between clock messages (0: every step)"),
+    "monitor_period": (0.0, "composed only: s of simulated time between joint_states and applied-command messages "
+                            "(0: every step; they are for monitoring and bags, the controller is called directly)"),
     "diagnostics_period": (1.0, "s of wall time between /diagnostics messages"),
     "response_log": ("", "realtime: every latency to this .npy (+ .json summary) at shutdown; folder checked at start"),
 }
@@ -84,7 +86,7 @@ def _check(p: dict) -> None:
     for name in ("lockstep_resend", "diagnostics_period"):
         if not p[name] > 0.0:
             raise ValueError(f"{name} must be > 0, got {p[name]}")
-    for name in ("task_status_rate", "clock_period"):
+    for name in ("task_status_rate", "clock_period", "monitor_period"):
         if not p[name] >= 0.0:
             raise ValueError(f"{name} must be >= 0, got {p[name]}")
     if p["response_log"]:  # fail now, not after a long run when the log is written at shutdown
@@ -115,6 +117,7 @@ class SimBridgeNode(Node):
         dt = self.bridge.dt
         self._status_every = max(1, round(1.0 / (p["task_status_rate"] * dt))) if p["task_status_rate"] else 0
         self._clock_every = max(1, round(p["clock_period"] / dt))
+        self._monitor_every = max(1, round(p["monitor_period"] / dt)) if host is not None else 1
 
         self._state = JointState()
         self._state.name = list(self.bridge.joint_names)
@@ -226,12 +229,13 @@ class SimBridgeNode(Node):
             self._publish_diagnostics()
 
     def _after_step(self) -> None:
-        if self.driver is not None:
-            self._publish_applied_command()
-        self._publish_state()
         steps = self.bridge.steps
+        if steps % self._monitor_every == 0:
+            if self.driver is not None:
+                self._publish_applied_command()
+            self._publish_state()
         if self._clock_pub is not None and steps % self._clock_every == 0:
-            self._clock_msg.clock = self._state.header.stamp
+            self._clock_msg.clock = _stamp(self.bridge.stamp_ns)
             self._clock_pub.publish(self._clock_msg)
         if self._status_every and steps % self._status_every == 0:
             self._publish_task_status()
