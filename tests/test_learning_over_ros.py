@@ -98,6 +98,25 @@ def test_two_ppo_iterations_over_ros_equal_the_in_process_trainer(tmp_path, comp
     assert_same_learning(over_ros, in_process_history(2, SHORT))
 
 
+def test_peg_over_the_composed_stack_equals_the_in_process_trainer(tmp_path):
+    """The peg's held part (mass, TCP) is the same in the sim, the controller and the trainer: over
+    ROS the learning equals the in-process run (with held_part: gear the TCP was 3 cm off)."""
+    domain = allocate_domain_id()
+    config = str(REPO / "config" / "peg.yaml")
+    arm = [RosProcess(["-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", config,
+                       "-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0"],
+                      domain, tmp_path / "composed.log")]
+    try:
+        lrn = learner(domain, tmp_path / "run", tmp_path / "learner.log", 2, SHORT, config)
+        assert wait_exit(lrn, 300) == 0, lrn.log() + logs(arm)
+    finally:
+        stop(arm)
+    assert "held part peg" in logs(arm)
+    over_ros = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert all(r["dropped_episodes"] == 0 for r in over_ros)
+    assert_same_learning(over_ros, in_process_history(2, SHORT, config))
+
+
 def test_parameter_exploration_over_ros_equals_the_in_process_trainer(tmp_path):
     """make run's default task: learned S, D explored in parameter space, one published policy
     version per rollout, each rollout a deterministic controller."""
