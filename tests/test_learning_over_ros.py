@@ -33,14 +33,14 @@ CONFIG = str(REPO / "config" / "gear.yaml")
 SHORT = {"episode_seconds": 0.5, "rollouts_per_iter": 3, "eval_episodes": 0}
 
 
-def stack(domain: int, tmp: Path, idle_mode: str, composed: bool = True) -> list[RosProcess]:
+def stack(domain: int, tmp: Path, idle_mode: str, composed: bool = True, config: str = CONFIG) -> list[RosProcess]:
     """The arm and its controller: one composed process, or the sim and the controller apart."""
     ctl_args = ["-p", f"nf_controller:idle_mode:={idle_mode}", "-p", "nf_controller:max_consecutive_misses:=0"]
     if composed:
-        return [RosProcess(["-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", CONFIG, *ctl_args],
+        return [RosProcess(["-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", config, *ctl_args],
                            domain, tmp / "composed.log")]
-    sim = RosProcess(["-m", "sim_bridge_node.node", "--ros-args", "--params-file", CONFIG], domain, tmp / "sim.log")
-    ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "--params-file", CONFIG, *ctl_args],
+    sim = RosProcess(["-m", "sim_bridge_node.node", "--ros-args", "--params-file", config], domain, tmp / "sim.log")
+    ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "--params-file", config, *ctl_args],
                      domain, tmp / "controller.log")
     return [sim, ctl]
 
@@ -103,9 +103,7 @@ def test_peg_over_the_composed_stack_equals_the_in_process_trainer(tmp_path):
     ROS the learning equals the in-process run (with held_part: gear the TCP was 3 cm off)."""
     domain = allocate_domain_id()
     config = str(REPO / "config" / "peg.yaml")
-    arm = [RosProcess(["-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", config,
-                       "-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0"],
-                      domain, tmp_path / "composed.log")]
+    arm = stack(domain, tmp_path, "pause", config=config)
     try:
         lrn = learner(domain, tmp_path / "run", tmp_path / "learner.log", 2, SHORT, config)
         assert wait_exit(lrn, 300) == 0, lrn.log() + logs(arm)
@@ -123,9 +121,7 @@ def test_parameter_exploration_over_ros_equals_the_in_process_trainer(tmp_path):
     domain = allocate_domain_id()
     config = str(REPO / "config" / "gear_learn.yaml")
     settings = {**SHORT, "rollouts_per_iter": 4}
-    arm = [RosProcess(["-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", config,
-                       "-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0"],
-                      domain, tmp_path / "composed.log")]
+    arm = stack(domain, tmp_path, "pause", config=config)
     try:
         lrn = learner(domain, tmp_path / "run", tmp_path / "learner.log", 2, settings, config)
         assert wait_exit(lrn, 300) == 0, lrn.log() + logs(arm)
