@@ -73,9 +73,7 @@ class ControllerHost:
         self._outbox: deque[HostEvent] = deque()
         self._work = threading.Event()
         self.last_stamp_ns = 0  # stamp of the last state ticked
-        self.ticks = 0
         self.tau = np.zeros(loop.n)  # last torque returned (a copy, for status and monitoring)
-        self.compute_seconds = 0.0  # duration of the last tick's compute
 
     # ------------------------------------------------------------------ slow side (any thread)
     def call(self, fn: Callable[[], T]) -> Future:
@@ -161,7 +159,6 @@ class ControllerHost:
         loop = self.loop
         tau, new_fault = loop.on_joint_state(self.joint_names if names is None else names, q, dq, stamp_ns, now)
         self.last_stamp_ns = stamp_ns
-        self.ticks += 1
         missed = loop.record_latency(time.perf_counter() - t0)
         fault = new_fault or missed
         if fault:
@@ -175,7 +172,6 @@ class ControllerHost:
             elif run.done:
                 self.end_episode("")
         self.tau[:] = tau
-        self.compute_seconds = time.perf_counter() - t0
         return tau
 
     def end_episode(self, problem: str) -> None:
