@@ -267,9 +267,17 @@ def test_loop_stale_state_watchdog(arm):
     assert loop.on_timer(now=5.0) == (None, ""), "no state yet: nothing to hold"
     feed(now=10.0)
     assert loop.on_timer(now=10.015) == (None, "")
-    tau, new = loop.on_timer(now=10.05)
+    assert loop.on_timer(now=10.05) == (None, ""), "the watchdog itself was starved: states may be queued"
+    tau, new = loop.on_timer(now=10.055)
     assert tau is not None and _safe(tau) and "stale" in new and loop.mode == MODE_SAFE_HOLD
     assert loop.on_timer(now=10.06)[1] == "", "reported once"
+    late = _loop(arm, state_timeout=0.02)
+    late_feed = _Feed(late)
+    late_feed(now=10.0)
+    late.on_timer(now=10.005)
+    assert late.on_timer(now=10.6) == (None, ""), "after its own 595 ms stall the watchdog waits a run"
+    late_feed(now=10.601)  # the queued states are read
+    assert late.on_timer(now=10.605) == (None, "") and late.mode != MODE_SAFE_HOLD
     off = _loop(arm)
     _Feed(off)(now=0.0)
     assert off.on_timer(now=100.0) == (None, ""), "state_timeout 0 disables the watchdog (lockstep)"

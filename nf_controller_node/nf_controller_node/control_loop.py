@@ -219,6 +219,7 @@ class ControlLoop:
         self.dq_max = DQ_PLAUSIBLE_MAX.copy()
         self.have_state = False
         self.last_state_time = -np.inf  # wall time (s) of the last joint state
+        self._watchdog_time = -np.inf  # wall time (s) of the watchdog's previous run
         self._last_stamp = -1  # ns, stamp of the last accepted state (-1: take any)
         self.steps = 0
         self.bad_inputs = 0  # joint states rejected (names, sizes, stamps, values)
@@ -510,9 +511,17 @@ class ControlLoop:
         return self.controller.hold_last()
 
     def on_timer(self, now: float) -> tuple[np.ndarray | None, str]:
-        """Stale-state watchdog (realtime use): (hold torque to publish or None, new fault reason)."""
+        """Stale-state watchdog (realtime use): (hold torque to publish or None, new fault reason).
+
+        Call it every ``state_timeout / 4`` or so. If its previous run is more than half a timeout
+        ago, this process itself was starved (a stall, a swap, a busy machine): states may be
+        waiting unread in its queue, so it judges nothing this time and decides on its next run.
+        """
         timeout = self.config.state_timeout
+        previous, self._watchdog_time = self._watchdog_time, now
         if timeout <= 0.0 or not self.have_state or now - self.last_state_time <= timeout:
+            return None, ""
+        if now - previous > 0.5 * timeout:
             return None, ""
         age = now - self.last_state_time
         reason = f"joint state stale: none for {age * 1e3:.1f} ms (timeout {timeout * 1e3:.1f} ms)"
