@@ -102,6 +102,10 @@ class _Attrs:
         self.__dict__.update(d)
 
 
+# s, composed: the executor thread's sleep between spin slices while an episode's action waits
+# (see spin_pause): the waiting coroutine is resumed at most every half millisecond instead of
+# hundreds of thousands of times per second
+ACTION_POLL_PAUSE = 0.0005
 DRAIN_PERIOD = 0.002  # s, composed: how often the ticks' chunks, episode ends and faults are taken
 MAX_FAULT_TEXT = 300  # characters of a fault reason in status, diagnostics and logs
 BASE_FRAME = "panda_link0"
@@ -347,6 +351,12 @@ class NFControllerNode(Node):
             future.cancel()
             raise TimeoutError(f"the driver did not run the request within {timeout:.0f} s")
         return future.result()
+
+    def spin_pause(self) -> float:
+        """Seconds the executor thread sleeps after each spin slice (``ros_runtime.run_node``):
+        composed, while a RunEpisode goal runs, its coroutine would otherwise be resumed without
+        pause and take the GIL from the driver's tick (``ACTION_POLL_PAUSE``)."""
+        return ACTION_POLL_PAUSE if self.composed and self._goal is not None else 0.0
 
     async def _execute(self, gh: object) -> RunEpisode.Result:
         self._goal = gh

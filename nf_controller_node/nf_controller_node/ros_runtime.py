@@ -14,6 +14,7 @@ import contextlib
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -62,6 +63,12 @@ def run_node(make_node: Callable[[], Node | Sequence[Node]], prog: str, descript
     ``started(nodes)`` runs once the executor holds them (a composed driver starts its thread
     there); the nodes are destroyed in reverse order of creation.
 
+    A node may define ``spin_pause() -> float``: seconds to sleep after each spin slice. rclpy 7.1
+    resumes a coroutine that awaits a pending future at once, again and again, so while an action
+    waits (for an episode, say) the executor thread spins without pause (``tests/test_ros_runtime.py``
+    counts it). Alone that only burns a core; next to a driver thread it takes the GIL from the
+    1 kHz tick, and the composed nodes ask for a short pause while they wait.
+
     With ``work``, the executor spins in a background thread and ``work(node, stop)`` runs in the
     main thread; its return value is the exit code, and ``stop`` is set on a signal. If the node
     has a ``spin_lock`` (a ``threading.Lock``), each spin slice holds it, so the main thread can
@@ -91,11 +98,16 @@ def run_node(make_node: Callable[[], Node | Sequence[Node]], prog: str, descript
 
         lock = getattr(node, "spin_lock", None) or contextlib.nullcontext()
         slice_s = SPIN_SLICE if work is None else WORK_SPIN_SLICE
+        pauses = [n.spin_pause for n in nodes if callable(getattr(n, "spin_pause", None))]
 
         def spin() -> None:
             while not stop.is_set() and rclpy.ok():
                 with lock:
                     executor.spin_once(timeout_sec=slice_s)
+                for pause in pauses:
+                    seconds = pause()
+                    if seconds > 0.0:
+                        time.sleep(seconds)
 
         if work is None:
             spin()

@@ -1,0 +1,74 @@
+"""``ros_runtime.run_node``: a node's ``spin_pause`` bounds how often the executor resumes a coroutine
+that waits (rclpy 7.1 resumes it again at once, so without a pause the executor thread spins and,
+in a composed process, takes the GIL from the driver's tick). Real rclpy, own ROS_DOMAIN_ID."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+from rclpy.node import Node
+
+from nf_controller_node.ros_runtime import run_node
+
+from ros_testing import allocate_domain_id
+
+WAIT = 0.5  # s the coroutine waits
+PAUSE = 0.002  # s, spin_pause of the polite node
+
+
+class _Yield:
+    """Awaitable that gives control back to the executor once."""
+
+    def __await__(self):
+        yield
+
+
+class _Waiter(Node):
+    def __init__(self, pause: float) -> None:
+        super().__init__("waiter")
+        self.pause = pause
+        self.resumes = 0
+        self.finished = threading.Event()
+
+    def spin_pause(self) -> float:
+        return self.pause
+
+    async def wait(self) -> None:
+        deadline = time.monotonic() + WAIT
+        while time.monotonic() < deadline:
+            self.resumes += 1
+            await _Yield()
+        self.finished.set()
+
+
+def _resumes(pause: float) -> int:
+    made: list[_Waiter] = []
+
+    def make() -> _Waiter:
+        made.append(_Waiter(pause))
+        return made[0]
+
+    def started(nodes: list[Node]) -> None:
+        nodes[0].executor.create_task(nodes[0].wait())
+
+    def work(node: Node, stop: threading.Event) -> int:
+        assert made[0].finished.wait(10.0), "the coroutine never finished"
+        return 0
+
+    assert run_node(make, "waiter", "test", ["waiter"], work=work, started=started) == 0
+    return made[0].resumes
+
+
+@pytest.fixture
+def domain(monkeypatch):
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(allocate_domain_id()))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+
+def test_spin_pause_bounds_how_often_a_waiting_coroutine_is_resumed(domain):
+    polite = _resumes(PAUSE)
+    assert polite <= WAIT / PAUSE + 50, f"{polite} resumes in {WAIT} s with a {PAUSE * 1e3:.0f} ms pause"
+    busy = _resumes(0.0)  # what rclpy does by itself: the reason for spin_pause
+    assert busy > 5 * polite, f"without a pause only {busy} resumes (with: {polite})"
