@@ -50,6 +50,23 @@ def test_step_equals_composition_of_parts(arm):
     assert ctrl.fault == ""
 
 
+def test_joint_limit_springs_join_the_step_and_V(arm):
+    plain = _controller(arm)
+    sprung = _controller(arm)
+    sprung.set_law(TorqueLawConfig(joint_limit_stiffness=100.0, joint_limit_margin=0.1))
+    q, dq = Q0.copy(), np.zeros(7)
+    q[0] = panda_spec.Q_MAX[0] - 0.04  # joint 1 within 0.1 rad of its upper limit
+    tau = sprung.step(q, dq).copy()
+    base = plain.step(q, dq).copy()
+    expected = np.zeros(7)
+    expected[0] = -100.0 * 0.06
+    np.testing.assert_allclose(tau - base, expected, atol=1e-9)
+    assert sprung.lyapunov(q, dq) - plain.lyapunov(q, dq) == pytest.approx(0.5 * 100.0 * 0.06**2)
+    sprung.reset_rate_limit()
+    plain.reset_rate_limit()
+    assert sprung.step(Q0, dq) == pytest.approx(plain.step(Q0, dq)), "no effect away from the limits"
+
+
 BAD_STATES = {
     "nan q": (np.r_[math.nan, Q0[1:]], np.zeros(7)),
     "inf dq": (Q0, np.r_[np.zeros(6), math.inf]),

@@ -11,6 +11,8 @@ from nf_controller_node.torque_law import (
     NOT_FINITE,
     RATE_LIMITED,
     TorqueLawConfig,
+    joint_limit_potential,
+    joint_limit_torque,
     orientation_error,
     rotational_potential,
     safe_hold_torque,
@@ -29,7 +31,7 @@ def _law(J, R, g, dq, u, cfg, tau_prev=None):
     tau = np.zeros(7)
     prev = np.full(7, np.nan) if tau_prev is None else tau_prev
     flags = task_space_torque(J, R, g, dq, u, cfg.rotation_ref, cfg.k_rot, cfg.d_rot, cfg.joint_damping,
-                              cfg.gravity_compensation, prev, cfg.torque_limits, cfg.max_step, tau)
+                              cfg.gravity_compensation, prev, cfg.torque_limits, cfg.max_step, tau, np.zeros(7))
     return tau, flags
 
 
@@ -108,3 +110,34 @@ def test_safe_hold_drops_non_finite_terms():
 def test_bad_configuration_is_rejected(kw):
     with pytest.raises(ValueError):
         TorqueLawConfig(**kw)
+
+
+def test_joint_limit_springs_push_back_only_near_a_limit_and_have_the_potential_V_uses():
+    cfg = TorqueLawConfig(joint_limit_stiffness=100.0, joint_limit_margin=0.1)
+    out = np.zeros(7)
+    mid = 0.5 * (panda_spec.Q_MIN + panda_spec.Q_MAX)
+    joint_limit_torque(mid, cfg.q_soft_min, cfg.q_soft_max, cfg.joint_limit_stiffness, out)
+    assert not out.any() and joint_limit_potential(mid, cfg) == 0.0
+    q = mid.copy()
+    q[5] = panda_spec.Q_MAX[5] - 0.05  # 0.05 rad inside the margin of joint 6's upper limit
+    q[0] = panda_spec.Q_MIN[0] + 0.02
+    joint_limit_torque(q, cfg.q_soft_min, cfg.q_soft_max, cfg.joint_limit_stiffness, out)
+    assert out[5] == pytest.approx(-100.0 * 0.05) and out[0] == pytest.approx(100.0 * 0.08)
+    assert np.count_nonzero(out) == 2
+    for i in range(7):  # the torque is minus the potential's gradient
+        h = 1e-6
+        up, down = q.copy(), q.copy()
+        up[i] += h
+        down[i] -= h
+        grad = (joint_limit_potential(up, cfg) - joint_limit_potential(down, cfg)) / (2 * h)
+        assert -grad == pytest.approx(out[i], abs=1e-5)
+    J = np.zeros((6, 7))
+    tau, _ = _law(J, np.eye(3), np.zeros(7), np.zeros(7), np.zeros(3), TorqueLawConfig(gravity_compensation=False))
+    tau_k = np.zeros(7)
+    task_space_torque(J, np.eye(3), np.zeros(7), np.zeros(7), np.zeros(3), cfg.rotation_ref, cfg.k_rot, cfg.d_rot,
+                      cfg.joint_damping, False, np.full(7, np.nan), cfg.torque_limits, cfg.max_step, tau_k, out)
+    assert tau_k - tau == pytest.approx(out), "the law adds the springs' torque"
+    with pytest.raises(ValueError, match="joint limits"):
+        TorqueLawConfig(joint_limit_margin=2.0)
+    with pytest.raises(ValueError):
+        TorqueLawConfig(joint_limit_stiffness=-1.0)

@@ -172,6 +172,7 @@ class FrankaDriverNode(Node):
         loop.dq_max = spec.dq_max * (loop.dq_max / DQ_MAX)
         law = loop.controller.law
         law.torque_limits[:] = np.minimum(law.torque_limits, spec.torque_limits)
+        law.set_joint_limits(spec.q_min, spec.q_max)  # where the joint-limit springs act
         tcp = self._tcp_arm.tcp_position
         self.driver = FrankaDriverLoop(self.robot, controller.host, tcp, self.config, self.franka.Torques,
                                        self.exceptions, after_tick=self._after_tick, connect=self._connect)
@@ -182,7 +183,9 @@ class FrankaDriverNode(Node):
             f"torque limits {law.torque_limits.tolist()} Nm minus |g(q)| + 0.5 Nm "
             f"({'on' if self.config.gravity_headroom else 'OFF'}), rate limit {law.torque_rate_limit:g} Nm/s, "
             f"hold_damping {law.hold_damping:g} Nm s/rad, joint_damping {law.joint_damping:g}, k_rot {law.k_rot:g}, "
-            f"d_rot {law.d_rot:g}, idle_mode {loop.config.idle_mode}, deadline {loop.config.deadline * 1e3:g} ms x "
+            f"d_rot {law.d_rot:g}, joint-limit springs {law.joint_limit_stiffness:g} Nm/rad within "
+            f"{law.joint_limit_margin:g} rad of the limits, idle_mode {loop.config.idle_mode}, "
+            f"deadline {loop.config.deadline * 1e3:g} ms x "
             f"{loop.config.max_consecutive_misses}, joint ranges {np.round(loop.q_min, 3).tolist()} .. "
             f"{np.round(loop.q_max, 3).tolist()} rad, reset {self.config.reset_stiffness:g} N/m / "
             f"{self.config.reset_damping:g} N s/m to {self.config.start_position.tolist()} within "

@@ -99,7 +99,7 @@ def bench_architecture(arch: FlowArchitecture, calls: int, autograd_calls: int, 
             e = flow(x[None])[0] - phi_ref
             u[:] = (-(J.T @ (S @ e)) - J.T @ (D @ (J @ xdot))).numpy()
         task_space_torque(arm.J, arm.R, arm.g, dq, u, law.rotation_ref, law.k_rot, law.d_rot, law.joint_damping,
-                          law.gravity_compensation, prev, law.torque_limits, law.max_step, tau)
+                          law.gravity_compensation, prev, law.torque_limits, law.max_step, tau, np.zeros(7))
 
     slow_us = _time(autograd, autograd_calls, warmup=50)
     # same state -> same torque: the two steps compute the same law

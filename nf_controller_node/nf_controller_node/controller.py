@@ -15,6 +15,8 @@ from .flow_eval import FlowEvaluator, force_kernel
 from .torque_law import (
     NOT_FINITE,
     TorqueLawConfig,
+    joint_limit_potential,
+    joint_limit_torque,
     rotational_potential,
     safe_hold_torque,
     task_space_torque,
@@ -69,7 +71,8 @@ _FLOW_FAILED = -1
 
 
 @njit(cache=True)
-def _flow_step(J, R, g, x, dq, noise, wp, layout, code, consts, work, gains, R_ref, limits, tau_prev, xdot, u, tau):
+def _flow_step(J, R, g, x, dq, noise, wp, layout, code, consts, work, gains, R_ref, limits, tau_prev, xdot, u, tau,
+               tau_joint):
     """One fused compiled call: xdot = J_v dq, u = flow force + noise, then the joint torque law.
 
     gains = [k_rot, d_rot, joint_damping, gravity (1/0), max torque step]. Returns the torque law's
@@ -86,7 +89,7 @@ def _flow_step(J, R, g, x, dq, noise, wp, layout, code, consts, work, gains, R_r
     for r in range(3):
         u[r] += noise[r]
     return task_space_torque(J, R, g, dq, u, R_ref, gains[0], gains[1], gains[2], gains[3] > 0.0,
-                             tau_prev, limits, gains[4], tau)
+                             tau_prev, limits, gains[4], tau, tau_joint)
 
 
 class FlowController:
@@ -112,6 +115,7 @@ class FlowController:
         self._g_last = np.zeros(n)
         self._dq_zero = np.zeros(n)
         self._no_noise = np.zeros(3)
+        self.tau_joint = np.zeros(n)  # joint-limit springs' torque of the last step, Nm
         self.set_law(law or TorqueLawConfig())
         if not self.law.gravity_compensation:
             # The driver compensates gravity (a Franka): the arm gets no command of ours before the
@@ -158,9 +162,12 @@ class FlowController:
         arm.kinematics(q)
         self._g_last = arm.g  # last valid gravity torque, kept for a hold on a bad state
         noise = self._no_noise if extra_force is None else extra_force
+        if law.joint_limit_stiffness > 0.0:
+            joint_limit_torque(q, law.q_soft_min, law.q_soft_max, law.joint_limit_stiffness, self.tau_joint)
         if self._kernel_args is not None:
             self.flags = _flow_step(arm.J, arm.R, arm.g, arm.x, dq, noise, *self._kernel_args, self._gains,
-                                    law.rotation_ref, law.torque_limits, self.tau_prev, self.xdot, self.u, self.tau)
+                                    law.rotation_ref, law.torque_limits, self.tau_prev, self.xdot, self.u, self.tau,
+                                    self.tau_joint)
             if self.flags == _FLOW_FAILED:
                 return self._hold(q, dq, f"flow force not finite at x={arm.x.tolist()}")
         else:
@@ -172,7 +179,7 @@ class FlowController:
             self.u += noise
             self.flags = task_space_torque(
                 arm.J, arm.R, arm.g, dq, self.u, law.rotation_ref, law.k_rot, law.d_rot, law.joint_damping,
-                law.gravity_compensation, self.tau_prev, law.torque_limits, law.max_step, self.tau,
+                law.gravity_compensation, self.tau_prev, law.torque_limits, law.max_step, self.tau, self.tau_joint,
             )
         if self.flags & NOT_FINITE:
             self.fault = "controller produced a non-finite torque"
@@ -209,11 +216,13 @@ class FlowController:
 
     # -- energy ----------------------------------------------------------------------------
     def lyapunov(self, q: np.ndarray, dq: np.ndarray) -> float:
-        """V(q, dq) = flow potential + orientation spring energy + kinetic energy, J."""
+        """V(q, dq) = flow potential + orientation spring energy + joint-limit spring energy +
+        kinetic energy, J."""
         arm = self.arm
         arm.update(q, dq)
         return (
             self.evaluator.potential(arm.x)
             + rotational_potential(arm.R, self.law.rotation_ref, self.law.k_rot)
+            + joint_limit_potential(np.asarray(q, dtype=np.float64), self.law)
             + arm.kinetic_energy(q, dq)
         )

@@ -69,6 +69,9 @@ PARAMETERS = {
     "d_rot": (_LAW.d_rot, "orientation damping, Nm s/rad"),
     "joint_damping": (_LAW.joint_damping, "joint damping for the null space, Nm s/rad"),
     "hold_damping": (_LAW.hold_damping, "joint damping of the safe hold, Nm s/rad"),
+    "joint_limit_stiffness": (_LAW.joint_limit_stiffness, "Nm/rad of the springs that push a joint back from "
+                              "its limit (0: off; conservative, so every policy stays stable)"),
+    "joint_limit_margin": (_LAW.joint_limit_margin, "rad before a joint limit where its spring starts"),
     "deadline": (0.001, "s; a step taking longer is a deadline miss"),
     "max_consecutive_misses": (20, "deadline misses in a row that latch the safe hold (0: never)"),
     "state_timeout": (0.0, "s without a joint state before the safe hold (realtime drivers; 0: off)"),
@@ -131,7 +134,8 @@ def _loop_from(p: dict, arm: ArmModel | None = None, joint_names: Sequence[str] 
         if not p[name] > 0.0:
             raise ValueError(f"{name} must be > 0, got {p[name]}")
     law = TorqueLawConfig(k_rot=p["k_rot"], d_rot=p["d_rot"], joint_damping=p["joint_damping"],
-                          hold_damping=p["hold_damping"], gravity_compensation=p["gravity_compensation"])
+                          hold_damping=p["hold_damping"], gravity_compensation=p["gravity_compensation"],
+                          joint_limit_stiffness=p["joint_limit_stiffness"], joint_limit_margin=p["joint_limit_margin"])
     config = LoopConfig(deadline=p["deadline"], max_consecutive_misses=p["max_consecutive_misses"],
                         state_timeout=p["state_timeout"], idle_mode=p["idle_mode"])
     if not p["chunk_decisions"] >= 1:

@@ -32,20 +32,41 @@ class TorqueLawConfig:
     torque_rate_limit: float = panda_spec.TORQUE_RATE_LIMIT  # Nm/s
     dt: float = 0.001  # control period, s
     rotation_ref: np.ndarray = field(default_factory=lambda: panda_spec.INSERTION_ROTATION.copy())
+    # Joint-limit springs: within ``joint_limit_margin`` (rad) of a joint limit (``q_min``, ``q_max``)
+    # a spring of ``joint_limit_stiffness`` (Nm/rad) pushes the joint back. Conservative: its energy
+    # joins V (``joint_limit_potential``), so the stability proof holds with it. 0: off.
+    joint_limit_stiffness: float = 0.0
+    joint_limit_margin: float = 0.1
+    q_min: np.ndarray = field(default_factory=lambda: panda_spec.Q_MIN.copy())
+    q_max: np.ndarray = field(default_factory=lambda: panda_spec.Q_MAX.copy())
 
     def __post_init__(self) -> None:
-        for name in ("k_rot", "d_rot", "joint_damping", "hold_damping", "torque_rate_limit", "dt"):
+        for name in ("k_rot", "d_rot", "joint_damping", "hold_damping", "torque_rate_limit", "dt",
+                     "joint_limit_stiffness", "joint_limit_margin"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0.0 or (name == "dt" and value == 0.0):
                 raise ValueError(f"TorqueLawConfig.{name} must be finite and >= 0 (dt > 0), got {value}")
         self.torque_limits = np.asarray(self.torque_limits, dtype=np.float64)
         if self.torque_limits.shape != (7,) or not np.all(self.torque_limits > 0):
             raise ValueError(f"torque_limits must be 7 positive values, got {self.torque_limits}")
+        self.set_joint_limits(self.q_min, self.q_max)
         self.rotation_ref = np.ascontiguousarray(self.rotation_ref, dtype=np.float64)
         if self.rotation_ref.shape != (3, 3) or not np.allclose(
             self.rotation_ref @ self.rotation_ref.T, np.eye(3), atol=1e-9
         ):
             raise ValueError("rotation_ref must be a 3x3 rotation matrix")
+
+    def set_joint_limits(self, q_min: np.ndarray, q_max: np.ndarray) -> None:
+        """The arm's joint ranges (rad; a Franka driver sets the connected arm's). The springs act
+        inside ``joint_limit_margin`` of them (``q_soft_min``, ``q_soft_max``)."""
+        q_min = np.asarray(q_min, dtype=np.float64).copy()
+        q_max = np.asarray(q_max, dtype=np.float64).copy()
+        if q_min.shape != (7,) or q_max.shape != (7,) or not np.all(q_max - q_min > 2.0 * self.joint_limit_margin):
+            raise ValueError(f"joint limits must be 7 ranges wider than twice the margin "
+                             f"{self.joint_limit_margin} rad, got {q_min} .. {q_max}")
+        self.q_min, self.q_max = q_min, q_max
+        self.q_soft_min = q_min + self.joint_limit_margin
+        self.q_soft_max = q_max - self.joint_limit_margin
 
     @property
     def max_step(self) -> float:
@@ -94,12 +115,32 @@ def _fallback(tau: np.ndarray, tau_prev: np.ndarray) -> None:
 
 
 @njit(cache=True)
+def joint_limit_torque(q: np.ndarray, q_lo: np.ndarray, q_hi: np.ndarray, k: float, out: np.ndarray) -> None:
+    """out = the joint-limit springs' torque: k (q_lo - q) below q_lo, k (q_hi - q) above q_hi, else 0."""
+    for i in range(q.shape[0]):
+        v = 0.0
+        if q[i] < q_lo[i]:
+            v = k * (q_lo[i] - q[i])
+        elif q[i] > q_hi[i]:
+            v = k * (q_hi[i] - q[i])
+        out[i] = v
+
+
+def joint_limit_potential(q: np.ndarray, law: TorqueLawConfig) -> float:
+    """Energy (J) of the joint-limit springs whose torque is ``joint_limit_torque``."""
+    below = np.minimum(q - law.q_soft_min, 0.0)
+    above = np.maximum(q - law.q_soft_max, 0.0)
+    return 0.5 * law.joint_limit_stiffness * float(below @ below + above @ above)
+
+
+@njit(cache=True)
 def task_space_torque(
     J: np.ndarray, R: np.ndarray, g: np.ndarray, dq: np.ndarray, u: np.ndarray, R_ref: np.ndarray,
     k_rot: float, d_rot: float, joint_damping: float, use_gravity: bool,
-    tau_prev: np.ndarray, limits: np.ndarray, max_step: float, tau: np.ndarray,
+    tau_prev: np.ndarray, limits: np.ndarray, max_step: float, tau: np.ndarray, tau_joint: np.ndarray,
 ) -> int:
-    """tau = J_v^T u + J_w^T (k_rot e_R - d_rot w) - joint_damping dq (+ g), then rate limit and clamp.
+    """tau = J_v^T u + J_w^T (k_rot e_R - d_rot w) - joint_damping dq + tau_joint (+ g), then rate
+    limit and clamp. ``tau_joint``: joint-space torque of conservative terms (joint-limit springs).
 
     Writes ``tau`` and returns the flag mask. Never writes NaN: on a non-finite result ``tau``
     becomes the previous command (or zero) and NOT_FINITE is returned.
@@ -117,7 +158,7 @@ def task_space_torque(
     finite = True
     for j in range(n):
         v = (J[0, j] * u[0] + J[1, j] * u[1] + J[2, j] * u[2]
-             + J[3, j] * m0 + J[4, j] * m1 + J[5, j] * m2 - joint_damping * dq[j])
+             + J[3, j] * m0 + J[4, j] * m1 + J[5, j] * m2 - joint_damping * dq[j] + tau_joint[j])
         if use_gravity:
             v += g[j]
         if not np.isfinite(v):
