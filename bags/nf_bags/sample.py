@@ -70,8 +70,10 @@ def record_sample(out: Path, duration: float = 1.5, seed: int = 3, domain: int |
     rec = _start(["-m", "nf_bags.record", "-o", str(tmp_bag), "--topics", *TOPICS], domain, logs / "recorder.log")
     sim = _start(["-m", "sim_bridge_node.node", "--ros-args", "-p", "task:=gear", "-p", "mode:=lockstep"],
                  domain, logs / "sim.log")
-    ctl = _start(["-m", "nf_controller_node.node", "--ros-args", "-p", "idle_mode:=pause"], domain,
-                 logs / "controller.log")
+    # lockstep: the sim waits for every command, so wall-time deadlines mean nothing (a busy
+    # machine would latch "consecutive deadline misses" and abort the episode)
+    ctl = _start(["-m", "nf_controller_node.node", "--ros-args", "-p", "idle_mode:=pause",
+                  "-p", "max_consecutive_misses:=0"], domain, logs / "controller.log")
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain)
     node = rclpy.create_node("nf_bags_sample", context=context)
