@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import time
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +39,15 @@ def franka_stack(domain: int, log: Path, *extra: str) -> RosProcess:
     """``nf_franka_stack --ros-args --params-file config/franka.yaml`` pointed at the simulator."""
     return RosProcess(["-m", "franka_driver.stack", "--ros-args", "--params-file", CONFIG, *SIM_ROBOT, *extra],
                       domain, log)
+
+
+def _mode_changes(statuses: list, t0: float) -> list[tuple[float, int]]:
+    """(arrival time - t0 in s, mode) at every change of the controller's mode."""
+    out: list[tuple[float, int]] = []
+    for t, m in statuses:
+        if not out or out[-1][1] != m.mode:
+            out.append((round(t - t0, 2), int(m.mode)))
+    return out
 
 
 def learner(domain: int, out: Path, log: Path, iterations: int) -> RosProcess:
@@ -96,9 +106,10 @@ def test_stack_holds_without_a_policy_then_follows_one(tmp_path):
 @pytest.mark.slow
 @pytest.mark.timeout(1200)  # reset motions on a simulator that runs below real time on a loaded machine
 @pytest.mark.skipif(os.environ.get("NF_FRANKA_LEARNING") != "1", reason=(
-    "opt-in (NF_FRANKA_LEARNING=1): 5 min of franky-sim in real time, and not reliable yet: in the "
-    "quiet full-suite run a reset motion drove fr3_joint6 to 4.606 rad, past its 4.517 rad limit + 5 deg, "
-    "and the controller's plausibility check held the arm (issue 14 stays open)"))
+    "opt-in (NF_FRANKA_LEARNING=1): 2-5 min of franky-sim in real time. With the joint-limit springs "
+    "no reset motion left fr3_joint6's range in 6 runs (stop 18); 2 of the last 3 passed, and in the "
+    "third the probe saw only idle controller statuses while the learner's second iteration ran (not "
+    "explained; issue 14 stays open)"))
 def test_learning_through_reset_motions_and_a_learner_killed_mid_episode(tmp_path):
     domain = allocate_domain_id()
     probe = Probe(domain)
@@ -115,9 +126,14 @@ def test_learning_through_reset_motions_and_a_learner_killed_mid_episode(tmp_pat
             # an episode lost to a starved simulator (libfranka UDP timeout) is retried, then dropped:
             # tolerated here as long as the iteration learned from the others
             assert json.loads(metrics.read_text())[0]["dropped_episodes"] < 2, first.log()
-            # iteration 2: kill the learner while an episode runs
-            assert probe.spin_until(lambda: statuses[-1][1].mode == ControllerStatus.MODE_RUNNING, 120), \
-                first.log() + stack.log()
+            # iteration 2: kill the learner as soon as one of its episodes resets or runs (any status
+            # since iteration 1 ended, not only the latest: 0.5 s episodes can pass between two looks)
+            seen = len(statuses)
+            t_seen = time.monotonic()
+            busy = (ControllerStatus.MODE_RUNNING, ControllerStatus.MODE_RESETTING)
+            assert probe.spin_until(lambda: any(m.mode in busy for _, m in statuses[seen:]), 120), \
+                (f"mode changes (s after iteration 1's metrics, mode): {_mode_changes(statuses, t_seen)}\n"
+                 f"{first.log()}{stack.log()}")
             first.proc.send_signal(signal.SIGKILL)
             first.proc.wait(10)
             # the episode ends, the arm is held (idle_mode hold), no fault: a new learner is accepted
@@ -137,9 +153,15 @@ def test_learning_through_reset_motions_and_a_learner_killed_mid_episode(tmp_pat
             deploy = RosProcess(["-m", "franka_driver.deploy", str(run / "checkpoint.pt"), "--x-ref", *map(str, goal),
                                  "--version", "100", "--seconds", "60"], domain, tmp_path / "deploy.log")
             with deploy:
-                assert probe.spin_until(lambda: statuses[-1][1].policy_version == 100, 60), \
-                    deploy.log() + stack.log()
-                assert list(statuses[-1][1].x_ref) == pytest.approx(goal)
+                seen = len(statuses)
+
+                def deployed() -> list:
+                    return [m for _, m in statuses[seen:] if m.policy_version == 100]
+
+                assert probe.spin_until(lambda: bool(deployed()), 60), \
+                    (f"{len(statuses) - seen} statuses since the deploy started, the last "
+                     f"{statuses[-1][1] if statuses else None}\n{deploy.log()}{stack.log()}")
+                assert list(deployed()[0].x_ref) == pytest.approx(goal)
         assert stack.proc.returncode == 0, stack.log()
     finally:
         for proc in learners:
