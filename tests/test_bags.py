@@ -241,7 +241,11 @@ def test_recorder_killed_with_sigkill_leaves_complete_chunks_readable(tmp_path):
         probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", LATCHED).publish(
             policy_msg(np.array([0.45, 0.0, 0.35])))
         wait_recording(rec, probe, ["/joint_states", "/effort_controller/commands"], 30)
+        # at least 2.3 s (3 closed chunks of 0.5 s) and 1,200 states: a busy machine steps the
+        # lockstep pair slower (329 states in 2.3 s were seen with a training on the other core)
+        start = len(seen)
         probe.spin_for(2.3)
+        probe.spin_until(lambda: len(seen) - start >= 1200, 30)
         rec.proc.send_signal(signal.SIGKILL)
         killed_at = time.time_ns()
         rec.proc.wait(10)
