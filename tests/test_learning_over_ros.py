@@ -98,29 +98,10 @@ def test_two_ppo_iterations_over_ros_equal_the_in_process_trainer(tmp_path, comp
     assert_same_learning(over_ros, in_process_history(2, SHORT))
 
 
-def test_peg_over_the_composed_stack_equals_the_in_process_trainer(tmp_path):
-    """The peg's held part (mass, TCP) is the same in the sim, the controller and the trainer: over
-    ROS the learning equals the in-process run (with held_part: gear the TCP was 3 cm off)."""
+def learn_over_composed(tmp_path: Path, config: str, settings: dict) -> tuple[list[dict], str]:
+    """Two learner iterations against the composed arm, both started with ``config``: the learner's
+    metrics rows (none with a dropped episode) and the arm's log."""
     domain = allocate_domain_id()
-    config = str(REPO / "config" / "peg.yaml")
-    arm = stack(domain, tmp_path, "pause", config=config)
-    try:
-        lrn = learner(domain, tmp_path / "run", tmp_path / "learner.log", 2, SHORT, config)
-        assert wait_exit(lrn, 300) == 0, lrn.log() + logs(arm)
-    finally:
-        stop(arm)
-    assert "held part peg" in logs(arm)
-    over_ros = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    assert all(r["dropped_episodes"] == 0 for r in over_ros)
-    assert_same_learning(over_ros, in_process_history(2, SHORT, config))
-
-
-def test_parameter_exploration_over_ros_equals_the_in_process_trainer(tmp_path):
-    """make run's default task: learned S, D explored in parameter space, one published policy
-    version per rollout, each rollout a deterministic controller."""
-    domain = allocate_domain_id()
-    config = str(REPO / "config" / "gear_learn.yaml")
-    settings = {**SHORT, "rollouts_per_iter": 4}
     arm = stack(domain, tmp_path, "pause", config=config)
     try:
         lrn = learner(domain, tmp_path / "run", tmp_path / "learner.log", 2, settings, config)
@@ -129,6 +110,24 @@ def test_parameter_exploration_over_ros_equals_the_in_process_trainer(tmp_path):
         stop(arm)
     over_ros = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert all(r["dropped_episodes"] == 0 for r in over_ros)
+    return over_ros, logs(arm)
+
+
+def test_peg_over_the_composed_stack_equals_the_in_process_trainer(tmp_path):
+    """The peg's held part (mass, TCP) is the same in the sim, the controller and the trainer: over
+    ROS the learning equals the in-process run (with held_part: gear the TCP was 3 cm off)."""
+    config = str(REPO / "config" / "peg.yaml")
+    over_ros, arm_log = learn_over_composed(tmp_path, config, SHORT)
+    assert "held part peg" in arm_log
+    assert_same_learning(over_ros, in_process_history(2, SHORT, config))
+
+
+def test_parameter_exploration_over_ros_equals_the_in_process_trainer(tmp_path):
+    """make run's default task: learned S, D explored in parameter space, one published policy
+    version per rollout, each rollout a deterministic controller."""
+    config = str(REPO / "config" / "gear_learn.yaml")
+    settings = {**SHORT, "rollouts_per_iter": 4}
+    over_ros, arm_log = learn_over_composed(tmp_path, config, settings)
     in_process = in_process_history(2, settings, config)
     # Iteration 1 runs the same parameter draws: equal. The controller's episode core sums some
     # terms in another order than the in-process rollout (returns differ by ~1e-13), and the
@@ -137,7 +136,7 @@ def test_parameter_exploration_over_ros_equals_the_in_process_trainer(tmp_path):
     # and two-process alike). So iteration 2 is held to 1e-4.
     assert_same_learning(over_ros[:1], in_process[:1])
     assert over_ros[1]["return_mean"] == pytest.approx(in_process[1]["return_mean"], rel=1e-4)
-    assert "policy version 1001 installed" in logs(arm) and "policy version 2000 installed" in logs(arm)
+    assert "policy version 1001 installed" in arm_log and "policy version 2000 installed" in arm_log
 
 
 def test_a_latched_fault_makes_the_learner_wait_for_a_person_and_go_on_without_losing_the_iteration(tmp_path):
