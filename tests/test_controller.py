@@ -65,6 +65,11 @@ def test_joint_limit_springs_join_the_step_and_V(arm):
     sprung.reset_rate_limit()
     plain.reset_rate_limit()
     assert sprung.step(Q0, dq) == pytest.approx(plain.step(Q0, dq)), "no effect away from the limits"
+    sprung.step(q, dq)  # near the limit again: the springs push
+    sprung.set_law(TorqueLawConfig())  # springs off: nothing of them stays in the law
+    sprung.reset_rate_limit()
+    plain.reset_rate_limit()
+    assert sprung.step(q, dq) == pytest.approx(plain.step(q, dq))
 
 
 BAD_STATES = {

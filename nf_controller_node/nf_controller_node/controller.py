@@ -133,6 +133,7 @@ class FlowController:
     def set_law(self, law: TorqueLawConfig) -> None:
         """Set gains and limits of the torque law; call only between episodes."""
         self.law = law
+        self.tau_joint[:] = 0.0  # recomputed each step while the joint-limit springs are on
         self._gains = np.array([law.k_rot, law.d_rot, law.joint_damping, float(law.gravity_compensation),
                                 law.max_step])
 
