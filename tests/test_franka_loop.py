@@ -166,3 +166,29 @@ def test_an_episode_whose_policy_is_not_the_goal_is_refused():
     finally:
         stop.set()
         thread.join(5)
+
+
+def test_a_restarted_session_anchors_the_hold_where_the_arm_is_now():
+    """Issue 14: the safe hold brakes to its anchor. After a reflex the arm may have been moved (by
+    the reflex, by a person) before torque control restarts: the new session's hold must anchor at
+    the arm's position then, not pull it back to where the old session's hold began."""
+    robot = FakeRobot(fail_at=100)
+    driver, loop, host = _rig(robot)
+    ctrl = loop.controller
+    stop = threading.Event()
+    thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        assert _wait(lambda: driver.in_error)
+        before = host.call(lambda: ctrl.hold_anchor).result(timeout=5)
+        assert before is not None and np.allclose(before, Q0, atol=1e-3)  # the idle hold began at Q0
+        moved = Q0 + np.array([0.1, -0.05, 0.08, 0.05, -0.1, 0.05, 0.15])
+        robot.q = moved.copy()  # the driver waits for a recovery: nobody else touches the robot now
+        driver.request_recovery()
+        assert _wait(lambda: robot.sessions == 2 and robot.ticks > 150)
+        after = host.call(lambda: ctrl.hold_anchor).result(timeout=5)
+        np.testing.assert_allclose(after, moved, atol=1e-9)
+        assert loop.fault.startswith("libfranka error")  # still held until clear_fault
+    finally:
+        stop.set()
+        thread.join(5)

@@ -100,7 +100,8 @@ def test_safe_hold_drops_non_finite_terms():
     g[2] = np.inf
     dq[4] = np.nan
     tau = np.zeros(7)
-    safe_hold_torque(g, dq, cfg.hold_damping, True, np.full(7, np.nan), cfg.torque_limits, cfg.max_step, tau)
+    safe_hold_torque(g, dq, cfg.hold_damping, True, np.full(7, np.nan), cfg.torque_limits, cfg.max_step, tau,
+                     np.zeros(7), np.zeros(7), 0.0)
     assert np.all(np.isfinite(tau))
     assert tau[2] == -cfg.hold_damping and tau[4] == 4.0 and tau[0] == -cfg.hold_damping
 

@@ -346,6 +346,7 @@ class FrankaDriverLoop:
         self.in_error = False
         self.timing.restart()
         ctrl.reset_rate_limit(np.zeros(loop.n))  # the robot gets no torque from us before the first write
+        ctrl.release_hold_anchor()  # the arm may have moved since the last session (a reflex, a person)
         deferred, self._deferred = self._deferred, None
         if deferred is not None:
             start, future = deferred

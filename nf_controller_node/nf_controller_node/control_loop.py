@@ -49,9 +49,10 @@ from .torque_law import TorqueLawConfig
 # ControllerStatus modes (same numbers as nf_msgs/msg/ControllerStatus).
 MODE_IDLE, MODE_RUNNING, MODE_SAFE_HOLD, MODE_RESETTING = 0, 1, 2, 3
 NO_POLICY = "waiting for policy parameters"
-# Between episodes: "hold" answers every state with the safe hold (gravity + joint damping; for
-# realtime drivers and hardware), "policy" runs the deterministic controller, "pause" does not
-# answer at all (a lockstep simulator then waits instead of burning CPU during the PPO update).
+# Between episodes: "hold" answers every state with the safe hold (gravity + joint damping + the
+# hold spring to where the hold began; for realtime drivers and hardware), "policy" runs the
+# deterministic controller, "pause" does not answer at all (a lockstep simulator then waits
+# instead of burning CPU during the PPO update).
 IDLE_MODES = ("hold", "policy", "pause")
 FAULT_TEXT_MAX = 300  # characters: longest fault or rejection text the loop keeps, publishes or logs
 _PREVIEW_NAMES = 3  # names shown in a bad-names reason
@@ -242,6 +243,7 @@ class ControlLoop:
         scratch = FlowController(arm, FlowEvaluator.from_params(params), self.controller.law)
         q = 0.5 * (Q_MIN + Q_MAX)
         scratch.step(q, np.zeros(self.n))
+        scratch.hold(q, np.zeros(self.n))  # the first fault must not stall on loading the hold kernel
         scratch.lyapunov(q, np.zeros(self.n))
         state_problem(q, q, self.q_min, self.q_max, self.dq_max)
 
@@ -281,7 +283,7 @@ class ControlLoop:
         its clock back at zero) would make every later state "out of order" again, forever.
         """
         old = self.controller.fault
-        self.controller.clear_fault()
+        self.controller.clear_fault()  # and drops the hold's anchor: the next hold anchors where the arm is
         self._consecutive_misses = 0
         self._last_stamp = -1
         return old

@@ -96,6 +96,8 @@ class FlowController:
     """Stable flow controller for the Panda. ``step(q, dq)`` returns the joint torque to command.
 
     On bad input it returns the safe-hold torque and latches ``fault`` until ``clear_fault()``.
+    The safe hold brakes to its anchor (``hold``): the joint position of the first usable state
+    it sees after anything else ran.
     The returned array is an internal buffer: copy it if you keep it. ``evaluator`` is a
     ``FlowEvaluator`` (fused compiled path) or any object with ``force(x, xdot, out)`` and
     ``potential(x)`` (e.g. a baseline MLP policy). ``law`` is read at construction and by
@@ -116,6 +118,8 @@ class FlowController:
         self._dq_zero = np.zeros(n)
         self._no_noise = np.zeros(3)
         self.tau_joint = np.zeros(n)  # joint-limit springs' torque of the last step, Nm
+        self._q_anchor = np.zeros(n)  # joint position the safe hold's spring pulls to, rad
+        self._anchored = False  # False: the next hold with a usable q anchors there
         self.set_law(law or TorqueLawConfig())
         if not self.law.gravity_compensation:
             # The driver compensates gravity (a Franka): the arm gets no command of ours before the
@@ -134,12 +138,25 @@ class FlowController:
         """Set gains and limits of the torque law; call only between episodes."""
         self.law = law
         self.tau_joint[:] = 0.0  # recomputed each step while the joint-limit springs are on
+        self._anchored = False  # the next hold anchors where it begins, under the new law
         self._gains = np.array([law.k_rot, law.d_rot, law.joint_damping, float(law.gravity_compensation),
                                 law.max_step])
 
     def clear_fault(self) -> None:
-        """Re-arm after a fault (the caller has made sure the cause is gone)."""
+        """Re-arm after a fault (the caller has made sure the cause is gone). The next hold anchors
+        where the arm is then: a person may have moved it, and the hold must not pull it back."""
         self.fault = ""
+        self._anchored = False
+
+    def release_hold_anchor(self) -> None:
+        """Forget the safe hold's anchor: the next hold anchors at its own first usable state. For a
+        driver whose arm moved without our commands (a restarted torque-control session)."""
+        self._anchored = False
+
+    @property
+    def hold_anchor(self) -> np.ndarray | None:
+        """Joint position (rad) the safe hold pulls to, a copy; None until a hold has anchored."""
+        return self._q_anchor.copy() if self._anchored else None
 
     def reset_rate_limit(self, tau_now: np.ndarray | None = None) -> None:
         """Start rate limiting from ``tau_now`` (the torque the arm currently receives), or not at all."""
@@ -160,6 +177,7 @@ class FlowController:
         if self.fault:
             return self._hold(q, dq, self.fault)
         arm, law = self.arm, self.law
+        self._anchored = False  # the flow runs: a hold after this step anchors where it begins
         arm.kinematics(q)
         self._g_last = arm.g  # last valid gravity torque, kept for a hold on a bad state
         noise = self._no_noise if extra_force is None else extra_force
@@ -188,25 +206,37 @@ class FlowController:
         return self.tau
 
     def hold(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
-        """Safe-hold torque: gravity compensation + joint damping (no flow). An unusable q holds the
-        last valid gravity; an absurd dq (beyond 4x the velocity limit) drives no damping."""
+        """Safe-hold torque (no flow): gravity compensation + joint damping + a joint spring
+        (``law.hold_stiffness``) to the anchor. The anchor is q of the first usable state a hold
+        sees after the flow last ran (``step``), or after ``set_law``, ``clear_fault`` or
+        ``release_hold_anchor``: where the fault or the idle hold began, so the arm brakes there
+        instead of coasting. An unusable q holds the last valid gravity and adds no spring (a spring
+        from a stale q would push open-loop; the anchor stays for the next usable state); an absurd
+        dq (beyond 4x the velocity limit) drives no damping."""
         law = self.law
         code = _state_fault(q, dq, _Q_SANE, _DQ_SANE_HOLD) if q.shape == dq.shape == (self.n,) else 1
+        q_spring = self._q_anchor  # q = anchor: no spring term
         if code == 0 or code == 4:  # q usable
             self._g_last = pin.computeGeneralizedGravity(self.arm.model, self.arm.data, q).copy()
+            if not self._anchored:
+                self._q_anchor[:] = q
+                self._anchored = True
+            q_spring = q
         damp = code == 0
         self.flags = safe_hold_torque(
             self._g_last, dq if damp else self._dq_zero, law.hold_damping, law.gravity_compensation,
-            self.tau_prev, law.torque_limits, law.max_step, self.tau,
+            self.tau_prev, law.torque_limits, law.max_step, self.tau, q_spring, self._q_anchor, law.hold_stiffness,
         )
         self.tau_prev[:] = self.tau
         return self.tau
 
     def hold_last(self) -> np.ndarray:
-        """Safe hold on the last valid state (its gravity, no damping): for a state that cannot be used."""
+        """Safe hold on the last valid state (its gravity, no damping, no spring): for a state that
+        cannot be used. The anchor stays: the spring resumes with the next usable state."""
         law = self.law
         self.flags = safe_hold_torque(self._g_last, self._dq_zero, law.hold_damping, law.gravity_compensation,
-                                      self.tau_prev, law.torque_limits, law.max_step, self.tau)
+                                      self.tau_prev, law.torque_limits, law.max_step, self.tau,
+                                      self._q_anchor, self._q_anchor, law.hold_stiffness)
         self.tau_prev[:] = self.tau
         return self.tau
 

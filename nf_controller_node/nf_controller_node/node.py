@@ -8,7 +8,8 @@ sequence numbers) and return the result. Between episodes ``idle_mode`` decides 
 gets: the safe hold (default), the deterministic controller, or (lockstep simulation) nothing.
 
 Each joint state is answered within its own callback (EventsExecutor) with one torque command:
-the flow controller, or the safe hold (gravity compensation + joint damping) on any bad input.
+the flow controller, or the safe hold (gravity compensation + joint damping + a spring to where
+the hold began, ``hold_stiffness``) on any bad input.
 Policy parameters arrive on ``/policy_parameters`` (reliable, transient local), are validated
 and swapped in between episodes. ``controller_status`` (50 Hz) and ``/diagnostics`` (1 Hz)
 report mode, fault, energy and loop latency. ``~/clear_fault`` re-arms after a fault.
@@ -69,6 +70,8 @@ PARAMETERS = {
     "d_rot": (_LAW.d_rot, "orientation damping, Nm s/rad"),
     "joint_damping": (_LAW.joint_damping, "joint damping for the null space, Nm s/rad"),
     "hold_damping": (_LAW.hold_damping, "joint damping of the safe hold, Nm s/rad"),
+    "hold_stiffness": (_LAW.hold_stiffness, "Nm/rad of the safe hold's joint spring to where the hold began "
+                       "(its anchor; 0: damping only, the arm coasts)"),
     "joint_limit_stiffness": (_LAW.joint_limit_stiffness, "Nm/rad of the springs that push a joint back from "
                               "its limit (0: off; conservative, so every policy stays stable)"),
     "joint_limit_margin": (_LAW.joint_limit_margin, "rad before a joint limit where its spring starts"),
@@ -134,7 +137,8 @@ def _loop_from(p: dict, arm: ArmModel | None = None, joint_names: Sequence[str] 
         if not p[name] > 0.0:
             raise ValueError(f"{name} must be > 0, got {p[name]}")
     law = TorqueLawConfig(k_rot=p["k_rot"], d_rot=p["d_rot"], joint_damping=p["joint_damping"],
-                          hold_damping=p["hold_damping"], gravity_compensation=p["gravity_compensation"],
+                          hold_damping=p["hold_damping"], hold_stiffness=p["hold_stiffness"],
+                          gravity_compensation=p["gravity_compensation"],
                           joint_limit_stiffness=p["joint_limit_stiffness"], joint_limit_margin=p["joint_limit_margin"])
     config = LoopConfig(deadline=p["deadline"], max_consecutive_misses=p["max_consecutive_misses"],
                         state_timeout=p["state_timeout"], idle_mode=p["idle_mode"])

@@ -27,6 +27,9 @@ class TorqueLawConfig:
     d_rot: float = 3.0  # orientation damping, Nm s/rad
     joint_damping: float = 0.5  # joint-space damping for the null space, Nm s/rad
     hold_damping: float = 2.0  # joint damping of the safe-hold law, Nm s/rad
+    # Joint spring of the safe hold to its anchor (the joint position where the hold began), Nm/rad.
+    # 0: damping only (the arm coasts); > 0: the hold brakes the arm back to where the fault happened.
+    hold_stiffness: float = 0.0
     gravity_compensation: bool = True  # False for drivers that compensate gravity themselves (Franka)
     torque_limits: np.ndarray = field(default_factory=lambda: panda_spec.TORQUE_LIMITS.copy())
     torque_rate_limit: float = panda_spec.TORQUE_RATE_LIMIT  # Nm/s
@@ -41,11 +44,12 @@ class TorqueLawConfig:
     q_max: np.ndarray = field(default_factory=lambda: panda_spec.Q_MAX.copy())
 
     def __post_init__(self) -> None:
-        for name in ("k_rot", "d_rot", "joint_damping", "hold_damping", "torque_rate_limit", "dt",
+        for name in ("k_rot", "d_rot", "joint_damping", "hold_damping", "hold_stiffness", "torque_rate_limit", "dt",
                      "joint_limit_stiffness", "joint_limit_margin"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0.0 or (name == "dt" and value == 0.0):
                 raise ValueError(f"TorqueLawConfig.{name} must be finite and >= 0 (dt > 0), got {value}")
+            setattr(self, name, float(value))  # an int would compile the kernels a second time
         self.torque_limits = np.asarray(self.torque_limits, dtype=np.float64)
         if self.torque_limits.shape != (7,) or not np.all(self.torque_limits > 0):
             raise ValueError(f"torque_limits must be 7 positive values, got {self.torque_limits}")
@@ -174,10 +178,12 @@ def task_space_torque(
 def safe_hold_torque(
     g: np.ndarray, dq: np.ndarray, damping: float, use_gravity: bool,
     tau_prev: np.ndarray, limits: np.ndarray, max_step: float, tau: np.ndarray,
+    q: np.ndarray, q_anchor: np.ndarray, stiffness: float,
 ) -> int:
-    """Safe hold: tau = g(q) - damping * dq (g omitted when the driver compensates), rate-limited, clamped.
+    """Safe hold: tau = g(q) - damping * dq - stiffness * (q - q_anchor) (g omitted when the driver
+    compensates), rate-limited, clamped. ``q = q_anchor`` (or stiffness 0) gives no spring.
 
-    Non-finite g or dq terms are dropped term by term, so the hold never outputs NaN.
+    Non-finite g, dq or spring terms are dropped term by term, so the hold never outputs NaN.
     """
     for j in range(tau.shape[0]):
         v = 0.0
@@ -185,6 +191,10 @@ def safe_hold_torque(
             v += g[j]
         if np.isfinite(dq[j]):
             v -= damping * dq[j]
+        if stiffness > 0.0:
+            spring = stiffness * (q[j] - q_anchor[j])
+            if np.isfinite(spring):
+                v -= spring
         tau[j] = v
     return _limit(tau, tau_prev, limits, max_step)
 
