@@ -8,7 +8,7 @@ Per tick, on the driver thread::
     control.writeOnce(Torques(tau))   # the robot adds its own gravity torque
     ... after the write: task depth from kinematics, reset progress, timing
 
-Nothing slow happens between ``readOnce`` returning and ``writeOnce``. ``DriverTiming`` measures
+Nothing slow happens between ``readOnce`` returning and ``writeOnce``. ``TickTiming`` measures
 that latency, the loop period and the cycles the robot reports as missed.
 
 Episodes (``begin_episode``) start with a reset *motion*: the stable controller itself (identity
@@ -43,8 +43,8 @@ from nf_controller_node.flow_eval import FlowEvaluator
 from nf_controller_node.flow_spec import FlowArchitecture
 from nf_controller_node.host import ControllerHost
 from nf_controller_node.policy_params import PolicyParameters
+from nf_controller_node.tick_timing import LATE_AFTER, TickTiming
 
-LATE_AFTER = 0.001  # s: a tick whose read -> write latency exceeds this missed the robot's cycle
 GRAVITY_MARGIN = 0.5  # Nm kept free below a joint's limit on top of the robot's gravity torque
 
 
@@ -88,57 +88,6 @@ class DriverConfig:
             self.goal = goal
         if self.reset_settle < 1:
             raise ValueError(f"reset_settle must be >= 1, got {self.reset_settle}")
-
-
-class DriverTiming:
-    """Timing of the torque loop on its own clock (``time.perf_counter``)."""
-
-    def __init__(self, keep_all: bool = False) -> None:
-        self.latency = array.array("d")  # readOnce returned -> writeOnce returned, s (keep_all)
-        self.periods = array.array("d")  # readOnce return to the next one, s (keep_all)
-        self._keep = keep_all
-        self._window: list[float] = []
-        self._last_read: float | None = None
-        self.ticks = 0
-        self.late = 0  # latency above LATE_AFTER
-        self.run = 0
-        self.longest_run = 0  # longest run of late ticks
-        self.missed_cycles = 0  # robot cycles between two reads beyond the first (readOnce's duration)
-
-    def tick(self, read: float, written: float, robot_dt: float) -> None:
-        """One tick: state read at ``read``, command written at ``written`` (s), robot time since
-        the previous read ``robot_dt`` (s)."""
-        latency = written - read
-        if self._last_read is not None and self._keep:
-            self.periods.append(read - self._last_read)
-        self._last_read = read
-        self.ticks += 1
-        if self._keep:
-            self.latency.append(latency)
-        if len(self._window) < 100_000:
-            self._window.append(latency)
-        if robot_dt > 0.0015:
-            self.missed_cycles += int(round(robot_dt / 0.001)) - 1
-        if latency > LATE_AFTER:
-            self.late += 1
-            self.run += 1
-            self.longest_run = max(self.longest_run, self.run)
-        else:
-            self.run = 0
-
-    def restart(self) -> None:
-        """A new torque-control session: the next period is not measured across the gap."""
-        self._last_read = None
-
-    def take_window(self) -> list[float]:
-        """Latencies (s) since the last call."""
-        window, self._window = self._window, []
-        return window
-
-    def counters(self) -> dict[str, int]:
-        """Counts for diagnostics and the benchmark."""
-        return {"ticks": self.ticks, "late_ticks": self.late, "longest_late_run": self.longest_run,
-                "missed_cycles": self.missed_cycles}
 
 
 def reset_policy(start: np.ndarray, stiffness: float, damping: float) -> PolicyParameters:
@@ -185,7 +134,7 @@ class FrankaDriverLoop:
         self.torques = torque_factory
         self.franka_errors = exceptions
         self.after_tick = after_tick
-        self.timing = DriverTiming(config.keep_timing)
+        self.timing = TickTiming(config.keep_timing)
         self.law = host.loop.controller.law
         self.base_limits = self.law.torque_limits.copy()
         self.exceptions = 0  # libfranka exceptions caught
@@ -376,7 +325,11 @@ class FrankaDriverLoop:
                     stamp_ns = host.last_stamp_ns + 1_000_000
             tau = host.tick(stamp_ns, q, dq, time.monotonic())
             control.writeOnce(make(tau.tolist()))
-            timing.tick(read, perf(), duration.to_sec())
+            written = perf()
+            timing.tick(read, written - read, late=written - read > LATE_AFTER)  # late: missed the cycle
+            robot_dt = duration.to_sec()
+            if robot_dt > 0.0015:  # the robot's time since the previous read spans more than one cycle
+                timing.missed_cycles += int(round(robot_dt / 0.001)) - 1
             # ---- after the write: the next state is ~1 ms away
             if headroom:  # the robot adds g(q) to our command: keep |command + g| within the limit
                 np.subtract(limits, np.abs(arm.g), out=law_limits)

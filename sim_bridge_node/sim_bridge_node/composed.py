@@ -27,63 +27,11 @@ import numpy as np
 
 from nf_controller_node.episode import EpisodeRun
 from nf_controller_node.host import ControllerHost
+from nf_controller_node.tick_timing import LATE_AFTER, TickTiming
 from sim_bridge_node.bridge import ACCEPTED, SimBridge
 
-LATE_AFTER = 0.001  # s: a tick starting this much after its scheduled time is late
-LONG_LATE_RUN = 3  # runs of at least this many late ticks are kept with their time
 _WAIT_IDLE = 0.05  # s, longest sleep of an idle lockstep loop before it looks again
 TASK_EVERY = 20  # steps between task reports (depth, success) outside episodes
-
-
-class TickTiming:
-    """Realtime timing of a driver loop, measured on its own clock (``time.perf_counter``)."""
-
-    def __init__(self, period: float, keep_all: bool = False) -> None:
-        self.period = period
-        self.latency = array.array("d")  # state read -> command written, s (kept when keep_all)
-        self.periods = array.array("d")  # start of tick k -> start of tick k+1, s (kept when keep_all)
-        self._keep = keep_all
-        self._window: list[float] = []
-        self.ticks = 0
-        self.late = 0  # ticks that started more than LATE_AFTER after their scheduled time
-        self.run = 0
-        self.longest_run = 0
-        self.long_runs: list[tuple[float, int]] = []  # (s since the start, length) of runs >= LONG_LATE_RUN
-        self.resyncs = 0  # schedule restarted after falling more than 10 periods behind
-        self._t0: float | None = None
-        self._last_start: float | None = None
-
-    def tick(self, scheduled: float, started: float, latency: float) -> None:
-        """One tick that was due at ``scheduled``, began at ``started`` and took ``latency`` from
-        reading the state to writing the command (all s, perf_counter)."""
-        if self._t0 is None:
-            self._t0 = started
-        if self._last_start is not None and self._keep:
-            self.periods.append(started - self._last_start)
-        self._last_start = started
-        self.ticks += 1
-        if self._keep:
-            self.latency.append(latency)
-        if len(self._window) < 100_000:
-            self._window.append(latency)
-        if started - scheduled > LATE_AFTER:
-            self.late += 1
-            self.run += 1
-            self.longest_run = max(self.longest_run, self.run)
-        else:
-            if self.run >= LONG_LATE_RUN:
-                self.long_runs.append((started - self._t0, self.run))
-            self.run = 0
-
-    def take_window(self) -> list[float]:
-        """Latencies (s) since the last call."""
-        window, self._window = self._window, []
-        return window
-
-    def counters(self) -> dict[str, int]:
-        """Counts for diagnostics and the response log."""
-        return {"ticks": self.ticks, "late_ticks": self.late, "longest_late_run": self.longest_run,
-                "resyncs": self.resyncs}
 
 
 class SimDriverLoop:
@@ -98,7 +46,7 @@ class SimDriverLoop:
         self.host = host
         self.realtime = realtime
         self.after_step = after_step
-        self.timing = TickTiming(bridge.dt, keep_all=keep_timing) if realtime else None
+        self.timing = TickTiming(keep_all=keep_timing) if realtime else None
         self._success_depth = bridge.env.scene.success_depth
         self.bad_torques = 0  # torques the bridge refused (never expected: the host returns finite ones)
         self.errors: list[str] = []
@@ -174,7 +122,7 @@ class SimDriverLoop:
                 self._step(time.monotonic())
             written = time.perf_counter()
             bridge.step_realtime(time.monotonic())
-            timing.tick(due, started, written - started)
+            timing.tick(started, written - started, late=started - due > LATE_AFTER)
             self.after_step()
             due += dt
             wait = due - time.perf_counter()

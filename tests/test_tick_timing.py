@@ -1,0 +1,37 @@
+"""The one tick-timing record of both drivers that host the controller (composed sim, Franka)."""
+
+import pytest
+
+from nf_controller_node.tick_timing import LONG_LATE_RUN, TickTiming
+
+
+def feed(t: TickTiming, lateness: list[bool], start: float = 0.0, dt: float = 1e-3) -> float:
+    for k, late in enumerate(lateness):
+        t.tick(start + k * dt, 1e-4, late)
+    return start + len(lateness) * dt
+
+
+def test_late_ticks_runs_and_long_runs_with_the_time_they_began():
+    t = TickTiming(keep_all=True)
+    feed(t, [False, True, False] + [True] * LONG_LATE_RUN + [False, False])
+    assert t.ticks == 3 + LONG_LATE_RUN + 2
+    assert t.late == 1 + LONG_LATE_RUN and t.longest_run == LONG_LATE_RUN
+    assert t.long_runs == [(pytest.approx(3e-3), LONG_LATE_RUN)]  # the short run is not kept
+    assert len(t.periods) == t.ticks - 1 and len(t.latency) == t.ticks
+
+
+def test_restart_measures_no_period_across_the_gap_and_ends_a_run():
+    t = TickTiming(keep_all=True)
+    end = feed(t, [True] * (LONG_LATE_RUN + 1))
+    t.restart()
+    feed(t, [False, False], start=end + 5.0)
+    assert max(t.periods) < 2e-3  # the 5 s between the sessions is not a period
+    assert t.long_runs == [(0.0, LONG_LATE_RUN + 1)] and t.run == 0
+
+
+def test_without_keep_all_only_the_bounded_window_is_kept():
+    t = TickTiming()
+    feed(t, [False] * 10)
+    assert len(t.latency) == 0 and len(t.periods) == 0
+    assert len(t.take_window()) == 10 and t.take_window() == []
+    assert t.counters() == {"ticks": 10, "late_ticks": 0, "longest_late_run": 0, "resyncs": 0, "missed_cycles": 0}
