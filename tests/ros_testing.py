@@ -13,6 +13,13 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 _counter = itertools.count()
+# The tests kill processes with SIGKILL on purpose (recorder, learner, controller, robot). Fast DDS's
+# shared-memory transport keeps per-process segments and locks in /dev/shm that a killed process
+# leaves behind (hundreds after one suite), and a peer blocked inside such a segment waits in C++,
+# where neither pytest-timeout's alarm nor anything else reaches it: a fresh-clone CI run once hung
+# for 80 minutes in the first test after the kills. Every ROS process of the tests, the test process
+# included (conftest.py), therefore talks over UDP on loopback only.
+TEST_TRANSPORTS = "UDPv4"
 
 
 def allocate_domain_id() -> int:
@@ -26,6 +33,7 @@ def ros_env(domain_id: int, **extra: str) -> dict[str, str]:
     env["ROS_DOMAIN_ID"] = str(domain_id)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env.pop("ROS_STATIC_PEERS", None)
+    env["FASTDDS_BUILTIN_TRANSPORTS"] = TEST_TRANSPORTS
     env["PYTHONUNBUFFERED"] = "1"
     packages = ("nf_controller_node", "learner_node", "sim_bridge_node", "nf_bringup", "franka_driver", "bags", "tests")
     paths = [str(REPO / p) for p in packages]
