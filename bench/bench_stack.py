@@ -6,9 +6,10 @@ against the same iteration in process, all in the same run.
 Starts the arm (composed, then separate) and the learner (own ROS_DOMAIN_ID, loopback only)
 ``--repeats`` times each, every learner doing one iteration, interleaved; then the floor of the
 two-process runtime (``pingpong.py``: a bare rclpy round trip between two processes, no work) and
-the in-process trainer on the same settings. Writes ``bench/results/stack.json``. Target: lockstep
->= 3000 steps/s (composed).
-Usage: python bench/bench_stack.py [--quick]
+the in-process trainer on the same settings. Writes ``bench/results/stack.json``. Targets (issue 13):
+lockstep >= 10,000 steps/s (composed), an iteration over ROS <= 1.3x the one in process.
+The settings are ``make run``'s (``config/gear_learn.yaml``) unless ``--config`` says otherwise.
+Usage: python bench/bench_stack.py [--quick] [--config config/gear.yaml]
 """
 
 from __future__ import annotations
@@ -26,14 +27,16 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
-CONFIG = REPO / "config" / "gear.yaml"
-TARGET_STEPS_PER_S = 3000.0
+CONFIG = REPO / "config" / "gear_learn.yaml"  # make run's settings
+TARGET_STEPS_PER_S = 10_000.0
+TARGET_ROS_OVER_IN_PROCESS = 1.3
 
 
-def ros_iteration(rollouts: int, seconds: float, domain: int, workdir: Path, composed: bool) -> dict:
+def ros_iteration(rollouts: int, seconds: float, domain: int, workdir: Path, composed: bool,
+                  config: Path = CONFIG) -> dict:
     """One PPO iteration over ROS; returns the learner's metrics row."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    params = ["--ros-args", "--params-file", str(CONFIG)]
+    params = ["--ros-args", "--params-file", str(config)]
     lockstep = ["-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0"]
     arm = [("nf_bringup.sim_stack", lockstep)] if composed else \
         [("sim_bridge_node.node", []), ("nf_controller_node.node", lockstep)]
@@ -58,12 +61,12 @@ def ros_iteration(rollouts: int, seconds: float, domain: int, workdir: Path, com
                 p.kill()
 
 
-def in_process_iteration(rollouts: int, seconds: float) -> dict:
+def in_process_iteration(rollouts: int, seconds: float, config: Path = CONFIG) -> dict:
     """The same iteration in process (after one warm-up iteration compiles the kernels)."""
     from learner_node.config import TrainConfig
     from learner_node.trainer import Trainer
 
-    cfg = TrainConfig.from_sources(CONFIG, {"rollouts_per_iter": rollouts, "episode_seconds": seconds})
+    cfg = TrainConfig.from_sources(config, {"rollouts_per_iter": rollouts, "episode_seconds": seconds})
     trainer = Trainer(cfg)
     trainer.train_iteration()
     return trainer.train_iteration()
@@ -73,6 +76,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="2 repeats of 3 short episodes")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--config", type=Path, default=CONFIG, help="parameters file (default: make run's)")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "stack.json")
     args = parser.parse_args()
     rollouts, seconds, repeats = (3, 1.0, 2) if args.quick else (15, 5.0, args.repeats)
@@ -82,7 +86,7 @@ def main() -> int:
         for k in range(repeats):
             for j, how in enumerate(rows):
                 row = ros_iteration(rollouts, seconds, 150 + (os.getpid() + 2 * k + j) % 50, Path(tmp),
-                                    composed=how == "composed")
+                                    composed=how == "composed", config=args.config)
                 rows[how].append(row)
                 print(f"over ROS, {how} {k + 1}/{repeats}: rollouts {row['rollout_seconds']:.2f} s "
                       f"({steps / row['rollout_seconds']:.0f} steps/s), update {row['update_seconds']:.2f} s",
@@ -96,7 +100,7 @@ def main() -> int:
         floor.append(json.loads(done.stdout.strip().splitlines()[-1]))
         print(f"rclpy ping-pong floor {k + 1}/{repeats}: {floor[-1]['round_trips_per_s']:.0f} round trips/s",
               flush=True)
-    local = [in_process_iteration(rollouts, seconds) for _ in range(2)]
+    local = [in_process_iteration(rollouts, seconds, args.config) for _ in range(2)]
     rates = [steps / r["rollout_seconds"] for r in rows["composed"]]
     rates_separate = [steps / r["rollout_seconds"] for r in rows["separate"]]
     ros_wall = statistics.median(r["wall_seconds"] for r in rows["composed"])
@@ -104,7 +108,9 @@ def main() -> int:
     local_wall = statistics.median(r["wall_seconds"] for r in local)
     result = {
         "benchmark": "stack", "date": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": platform.machine(),
-        "cpus": os.cpu_count(), "rollouts": rollouts, "episode_seconds": seconds, "repeats": repeats,
+        "cpus": os.cpu_count(), "load_1min": os.getloadavg()[0],
+        "config": str(args.config.resolve().relative_to(REPO)) if args.config.resolve().is_relative_to(REPO)
+        else str(args.config), "rollouts": rollouts, "episode_seconds": seconds, "repeats": repeats,
         "lockstep_steps_per_s": {"median": statistics.median(rates), "min": min(rates), "max": max(rates),
                                  "all": rates, "target": TARGET_STEPS_PER_S, "what": "composed (nf_sim_stack)"},
         "lockstep_steps_per_s_separate": {"median": statistics.median(rates_separate), "min": min(rates_separate),
@@ -114,7 +120,7 @@ def main() -> int:
                            "median_us": statistics.median(f["median_us"] for f in floor), "all": floor,
                            "what": "bare rclpy round trip between two processes (bench/pingpong.py), no work"},
         "iteration_wall_s": {"over_ros_median": ros_wall, "in_process_median": local_wall,
-                             "ros_over_in_process": ros_wall / local_wall,
+                             "ros_over_in_process": ros_wall / local_wall, "target": TARGET_ROS_OVER_IN_PROCESS,
                              "separate_median": separate_wall, "separate_over_in_process": separate_wall / local_wall,
                              "over_ros_all": [r["wall_seconds"] for r in rows["composed"]],
                              "separate_all": [r["wall_seconds"] for r in rows["separate"]],

@@ -38,7 +38,8 @@ def _stack_line(stack: dict) -> str:
             f"{sep['median']:.0f} steps/s (bare rclpy ping-pong floor "
             f"{stack['pingpong_floor']['round_trips_per_s_median']:.0f}/s); PPO iteration composed "
             f"{w['over_ros_median']:.1f} s, two processes {w['separate_median']:.1f} s, in process "
-            f"{w['in_process_median']:.1f} s ({w['ros_over_in_process']:.1f}x / {w['separate_over_in_process']:.1f}x)")
+            f"{w['in_process_median']:.1f} s ({w['ros_over_in_process']:.1f}x / {w['separate_over_in_process']:.1f}x; "
+            f"target <= {w.get('target', 1.3):.1f}x), {stack.get('config', 'config/gear.yaml')}")
 
 
 def _realtime_line(realtime: dict) -> str:
