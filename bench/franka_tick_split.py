@@ -1,0 +1,100 @@
+"""Where a Franka tick's time goes, against franky-sim on 127.0.0.1: our side of the tick
+(conversions, ``ControllerHost.tick`` in hold mode, ``Torques``) vs ``writeOnce`` itself; then
+whether ``readOnce`` releases the GIL while it waits for the robot (a counting thread runs during
+the torque loop: its rate against the rate while the main thread sleeps).
+
+    python bench/franka_tick_split.py [--ticks 8000]
+
+A probe for docs/hardware.md, not a target benchmark (that is ``bench_franka.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import sys
+import threading
+import time
+from pathlib import Path
+from tempfile import TemporaryDirectory
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path[:0] = [str(HERE.parent / p) for p in ("nf_controller_node", "franka_driver")]
+
+from franka_driver.robot_model import identify  # noqa: E402
+from franka_driver.simulator import HOST, FrankySim  # noqa: E402
+from nf_controller_node import panda_spec  # noqa: E402
+from nf_controller_node.control_loop import ControlLoop, LoopConfig  # noqa: E402
+from nf_controller_node.host import ControllerHost  # noqa: E402
+from nf_controller_node.torque_law import TorqueLawConfig  # noqa: E402
+
+
+def _pcts(values: np.ndarray) -> str:
+    v = values * 1e6
+    return (f"p50 {np.percentile(v, 50):6.1f}  p99 {np.percentile(v, 99):6.1f}  "
+            f"p99.9 {np.percentile(v, 99.9):6.1f}  max {v.max():7.1f} us")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--ticks", type=int, default=8000)
+    args = parser.parse_args()
+    import pylibfranka as franka
+
+    with TemporaryDirectory() as tmp, FrankySim(Path(tmp) / "franky-sim.log"):
+        robot = franka.Robot(HOST, franka.RealtimeConfig.kIgnore)
+        state = robot.read_once()
+        spec = identify("auto", state, robot.load_model()).spec
+        loop = ControlLoop(spec.arm_model(panda_spec.GEAR_PART), TorqueLawConfig(gravity_compensation=False),
+                           LoopConfig(idle_mode="hold", max_consecutive_misses=0), joint_names=spec.joint_names)
+        host = ControllerHost(loop)
+        perf = time.perf_counter
+        n = args.ticks
+        ours, write = np.empty(n), np.empty(n)
+        count = [0]
+        counting = threading.Event()
+        done = threading.Event()
+
+        def counter() -> None:
+            while not done.is_set():
+                if counting.is_set():
+                    count[0] += 1
+
+        control = robot.start_torque_control()
+        gc.collect()
+        for i in range(n):  # phase 1: the split, nothing else running
+            st, _ = control.readOnce()
+            t0 = perf()
+            tau = host.tick(int(st.time.to_sec() * 1e9), np.array(st.q), np.array(st.dq), time.monotonic())
+            cmd = franka.Torques(tau.tolist())
+            t1 = perf()
+            control.writeOnce(cmd)
+            ours[i], write[i] = t1 - t0, perf() - t1
+        thread = threading.Thread(target=counter, daemon=True)
+        thread.start()
+        counting.set()
+        t0, c0 = perf(), count[0]
+        for _ in range(n // 4):  # phase 2: the counting thread runs during the torque loop
+            st, _ = control.readOnce()
+            tau = host.tick(int(st.time.to_sec() * 1e9), np.array(st.q), np.array(st.dq), time.monotonic())
+            control.writeOnce(franka.Torques(tau.tolist()))
+        in_loop = (count[0] - c0) / (perf() - t0)
+        robot.stop()
+        t0, c0 = perf(), count[0]
+        time.sleep(2.0)  # baseline: the main thread sleeps (GIL released)
+        idle = (count[0] - c0) / (perf() - t0)
+        done.set()
+        thread.join(2.0)
+    skip = min(500, n // 10)
+    print(f"our side of the tick  {_pcts(ours[skip:])}")
+    print(f"writeOnce             {_pcts(write[skip:])}")
+    print(f"counting thread: {in_loop:,.0f}/s during the torque loop vs {idle:,.0f}/s while the main thread "
+          f"sleeps ({in_loop / idle:.0%}): readOnce {'releases' if in_loop > 0.3 * idle else 'does not release'} "
+          f"the GIL while it waits")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
