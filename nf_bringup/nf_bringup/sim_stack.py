@@ -19,7 +19,7 @@ import sys
 from rclpy.node import Node
 
 from nf_controller_node.node import NFControllerNode
-from nf_controller_node.ros_runtime import run_node
+from nf_controller_node.ros_runtime import freeze_heap, run_node
 from sim_bridge_node.node import SimBridgeNode
 
 # GIL hand-over interval (s) of the composed process. Python's default, 5 ms, lets a busy executor
@@ -37,6 +37,7 @@ def make_nodes() -> list[Node]:
 
 
 def _start(nodes: list[Node]) -> None:
+    freeze_heap()  # no full garbage collection of the start-up objects inside the 1 kHz loop
     for node in nodes:
         if isinstance(node, SimBridgeNode):
             node.start_driver()

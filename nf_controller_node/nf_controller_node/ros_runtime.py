@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import signal
 import sys
 import threading
@@ -50,6 +51,17 @@ def declare_read_only(node: Node, spec: Mapping[str, tuple[Any, str]]) -> dict[s
         descriptor = ParameterDescriptor(description=description, read_only=True)
         values[name] = node.declare_parameter(name, default, descriptor).value
     return values
+
+
+def freeze_heap() -> int:
+    """Collect once, then move every object alive now to the collector's permanent generation
+    (``gc.freeze``); returns how many. For a process about to start a 1 kHz driver thread: a full
+    collection walks every tracked object (about 110,000 after importing rclpy, MuJoCo, Pinocchio and
+    the compiled kernels: ~40 ms here) with the GIL held, and stalls the tick for as long; after the
+    freeze it walks only what was created since."""
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
 
 
 def run_node(make_node: Callable[[], Node | Sequence[Node]], prog: str, description: str,
