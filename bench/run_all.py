@@ -46,8 +46,9 @@ def _realtime_line(realtime: dict) -> str:
     k, t = realtime["composed"], realtime["composed_targets"]
     line = (f"   realtime 1 kHz composed ({realtime['seconds']['composed']:.0f} s): state->torque median "
             f"{k['p50_us']:.0f} us, p99 {k['p99_us']:.0f} us (target <= {t['p99_us_max']:.0f}), p99.9 "
-            f"{k['p999_us']:.0f} us (<= {t['p999_us_max']:.0f}), longest run of late ticks {k['longest_late_run']} "
-            f"(< {t['late_run_below']})")
+            f"{k['p999_us']:.0f} us, late ticks {100 * k['late_fraction']:.3f} % (<= "
+            f"{100 * t['late_fraction_max']:g} %), longest run of late ticks {k['longest_late_run']} "
+            f"(<= {t['longest_late_run_max']})")
     if realtime.get("controller") is None:
         return line
     c, e = realtime["controller"], realtime["baseline_echo"]
