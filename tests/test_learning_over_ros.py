@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import signal
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -272,6 +273,10 @@ def test_controller_unchanged_against_a_hardware_like_driver(tmp_path):
         assert sum(len(c.t) for _, c in chunks) == 50
         assert np.all(np.isnan(np.concatenate([c.insertion_depth for _, c in chunks])))  # no ground truth
         assert driver.alive() and ctl.alive()
+    except AssertionError as exc:
+        # a failed attempt that passes on its rerun leaves no report; a warning is listed at the end
+        warnings.warn(f"hardware-like driver test attempt failed: {str(exc)[:6000]}", stacklevel=1)
+        raise
     finally:
         ctl.stop()
         driver.stop()
