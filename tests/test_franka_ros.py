@@ -106,10 +106,10 @@ def test_stack_holds_without_a_policy_then_follows_one(tmp_path):
 @pytest.mark.slow
 @pytest.mark.timeout(1200)  # reset motions on a simulator that runs below real time on a loaded machine
 @pytest.mark.skipif(os.environ.get("NF_FRANKA_LEARNING") != "1", reason=(
-    "opt-in (NF_FRANKA_LEARNING=1): 2-5 min of franky-sim in real time. With the joint-limit springs "
-    "no reset motion left fr3_joint6's range in 6 runs (stop 18); 2 of the last 3 passed, and in the "
-    "third the probe saw only idle controller statuses while the learner's second iteration ran (not "
-    "explained; issue 14 stays open)"))
+    "opt-in (NF_FRANKA_LEARNING=1): franky-sim in real time, 26 s on a quiet machine, 2-5 min on a "
+    "loaded one. With the joint-limit springs no reset motion left fr3_joint6's range in 7 runs; 3 of "
+    "the last 4 passed, and in the other the probe saw only idle controller statuses while the "
+    "learner's second iteration ran (not explained; issue 14 stays open)"))
 def test_learning_through_reset_motions_and_a_learner_killed_mid_episode(tmp_path):
     domain = allocate_domain_id()
     probe = Probe(domain)
