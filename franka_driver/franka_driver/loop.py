@@ -325,8 +325,8 @@ class FrankaDriverLoop:
                     stamp_ns = host.last_stamp_ns + 1_000_000
             tau = host.tick(stamp_ns, q, dq, time.monotonic())
             control.writeOnce(make(tau.tolist()))
-            written = perf()
-            timing.tick(read, written - read, late=written - read > LATE_AFTER)  # late: missed the cycle
+            latency = perf() - read
+            timing.tick(read, latency, late=latency > LATE_AFTER)  # late: the command missed the cycle
             robot_dt = duration.to_sec()
             if robot_dt > 0.0015:  # the robot's time since the previous read spans more than one cycle
                 timing.missed_cycles += int(round(robot_dt / 0.001)) - 1
