@@ -26,6 +26,7 @@ from nf_msgs.action import RunEpisode
 from nf_msgs.msg import ControllerStatus, RolloutChunk
 from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
 from rclpy.action import ActionClient
+from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -54,6 +55,11 @@ NODE_PARAMETERS = {  # learner_node's own settings besides TrainConfig's
     # "auto": clear it at once (simulation only: the next reset puts the arm somewhere new).
     "on_safe_hold": "wait",
     "clear_fault_service": "nf_controller/clear_fault",
+    # Subscribers of /policy_parameters to wait for before the first episode (the controller; 2 with
+    # a bag recorder, which subscribes only once it sees this publisher: a short run could end
+    # before it did, and the bag would hold no policy). Waited for at most server_timeout.
+    "policy_subscribers": 1,
+    "policy_ack_timeout": 5.0,  # s to wait at the end for every subscriber to acknowledge the last policy
 }
 ON_SAFE_HOLD = ("wait", "auto")
 AUTO_CLEARS_PER_EPISODE = 3  # "auto": an episode that faults this often after clearing is dropped
@@ -103,6 +109,19 @@ class LearnerNode(Node):
         params.version = version
         self._policy_pub.publish(params.fill_msg(PolicyParametersMsg()))
         return version
+
+    def wait_for_policy_subscribers(self, count: int, timeout: float) -> bool:
+        """True once ``count`` subscriptions match the policy publisher (within ``timeout`` s)."""
+        deadline = time.monotonic() + timeout
+        while self._policy_pub.get_subscription_count() < count:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.02)
+        return True
+
+    def wait_for_policy_acks(self, timeout: float) -> bool:
+        """True once every matched subscriber acknowledged the policies published so far."""
+        return self._policy_pub.wait_for_all_acked(Duration(seconds=timeout))
 
     def _on_status(self, msg: ControllerStatus) -> None:
         self.controller_mode = int(msg.mode)
@@ -249,9 +268,22 @@ class RosTraining:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         _atomic_write(self.out_dir / "config.json", json.dumps(cfg.to_dict(), indent=1))
         version = self.node.publish_policy(trainer)
-        if not self.node.wait_for_server(self.node.settings["server_timeout"]):
+        settings = self.node.settings
+        if not self.node.wait_for_server(settings["server_timeout"]):
             LOG.error("no run_episode action server (is nf_controller running?)")
             return 1
+        if not self.node.wait_for_policy_subscribers(settings["policy_subscribers"], settings["server_timeout"]):
+            LOG.warning("fewer than %d subscribers of %s after %.0f s: going on (a recorder may miss policies)",
+                        settings["policy_subscribers"], POLICY_PARAMETERS, settings["server_timeout"])
+        try:
+            return self._train(version)
+        finally:
+            if not self.node.wait_for_policy_acks(settings["policy_ack_timeout"]):
+                LOG.warning("not every subscriber of %s acknowledged the last policy within %.0f s",
+                            POLICY_PARAMETERS, settings["policy_ack_timeout"])
+
+    def _train(self, version: int) -> int:
+        cfg, trainer = self.cfg, self.trainer
         LOG.info("NF-PPO over ROS on %s: iterations %d..%d, %d rollouts each, output %s", cfg.task,
                  trainer.iteration + 1, cfg.iterations, cfg.rollouts_per_iter, self.out_dir)
         while trainer.iteration < cfg.iterations and not self.stop.is_set():

@@ -55,13 +55,18 @@ def node_commands(config: Path, run_dir: Path, iterations: int, extra: Sequence[
     else:
         cmds = {"sim": [py, "-m", "sim_bridge_node.node", *params],
                 "controller": [py, "-m", "nf_controller_node.node", *params, *lockstep_controller]}
+    record = importlib.util.find_spec("nf_bags") is not None
+    # with a recorder the first episode also waits for its policy subscription (it subscribes only
+    # once it sees the learner's publisher), and the learner exits once both subscribers (the
+    # controller and the recorder) acknowledged its last policy
     cmds |= {
         # simulation: a latched fault is cleared at once (the next reset puts the arm somewhere new)
         "learner": [py, "-m", "learner_node.node", *params, "-p", "learner_node:on_safe_hold:=auto",
                     "-p", f"learner_node:out_dir:={run_dir / 'learner'}",
+                    "-p", f"learner_node:policy_subscribers:={2 if record else 1}",
                     "-p", f"learner_node:iterations:={iterations}", *extra],
     }
-    if importlib.util.find_spec("nf_bags") is not None:
+    if record:
         cmds["recorder"] = [py, "-m", "nf_bags.record", "-o", str(run_dir / "bag")]
     return cmds
 
