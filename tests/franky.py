@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from franka_driver.loop import DriverConfig, FrankaDriverLoop
-from franka_driver.robot_model import identify
+from franka_driver.robot_model import ArmSpec, identify
 from franka_driver.simulator import HOST, FrankySim  # noqa: F401  (re-exported for the tests)
 from nf_controller_node import panda_spec
 from nf_controller_node.control_loop import ControlLoop, LoopConfig
@@ -20,16 +20,20 @@ from nf_controller_node.torque_law import TorqueLawConfig
 
 class DriverRig:
     """pylibfranka connected to the simulator, the arm identified, a ControlLoop (gravity
-    compensation off, as on a Franka) behind a ControllerHost, and a FrankaDriverLoop on a thread."""
+    compensation off, as on a Franka) behind a ControllerHost, and a FrankaDriverLoop on a thread.
 
-    def __init__(self, idle_mode: str = "hold", config: DriverConfig | None = None) -> None:
+    ``spec``: the arm description the controller uses instead of the identified one (to measure a
+    wrong description, which the driver itself refuses); ``identification`` is still the robot's."""
+
+    def __init__(self, idle_mode: str = "hold", config: DriverConfig | None = None,
+                 spec: ArmSpec | None = None) -> None:
         import pylibfranka as franka
 
         self.franka = franka
         robot = franka.Robot(HOST, franka.RealtimeConfig.kIgnore)
         state = robot.read_once()
         self.identification = identify("auto", state, robot.load_model())
-        self.spec = spec = self.identification.spec
+        self.spec = spec = spec or self.identification.spec
         self.arm = spec.arm_model(panda_spec.GEAR_PART)
         self.loop = ControlLoop(self.arm, TorqueLawConfig(gravity_compensation=False),
                                 LoopConfig(idle_mode=idle_mode, max_consecutive_misses=0),
@@ -37,6 +41,7 @@ class DriverRig:
         self.host = ControllerHost(self.loop)
         self.tcp_arm = spec.arm_model(panda_spec.GEAR_PART)
         self.x0 = self.tcp_arm.tcp_position(np.asarray(state.q))
+        self.q = np.asarray(state.q, dtype=float).copy()  # joint positions of the last state
         self.taus: list[np.ndarray] = []
         self.limits: list[np.ndarray] = []
         errors = (franka.FrankaException, franka.ControlException, franka.CommandException,
@@ -49,6 +54,7 @@ class DriverRig:
         self._thread: threading.Thread | None = None
 
     def _record(self, q: np.ndarray, dq: np.ndarray, tau: np.ndarray, stamp_ns: int) -> None:
+        self.q = q
         self.taus.append(tau.copy())
         self.limits.append(self.loop.controller.law.torque_limits.copy())
 

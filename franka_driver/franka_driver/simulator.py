@@ -3,10 +3,14 @@ started and stopped by its PID: the robot of the tests and of ``bench/bench_fran
 
     with FrankySim(Path("franky-sim.log")) as sim:   # then connect pylibfranka to 127.0.0.1
         ...
+
+``FrankySim(log, frictionless=True)`` runs ``python -m franka_driver.franky_launch --frictionless``
+instead: the same simulator with the arm joints' Coulomb friction removed (``franky_launch``).
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import socket
 import subprocess
@@ -26,21 +30,32 @@ def port_busy(host: str = HOST, port: int = PORT) -> bool:
 
 
 class FrankySim:
-    """``franky-sim -s mujoco --hostname 127.0.0.1`` as a child process (context manager)."""
+    """``franky-sim -s mujoco --hostname 127.0.0.1`` as a child process (context manager).
 
-    def __init__(self, log_path: Path, timeout: float = 60.0) -> None:
+    ``frictionless``: ``python -m franka_driver.franky_launch --frictionless`` instead, franky-sim's
+    simulator built the same way with the arm joints' ``frictionloss`` zeroed (for measuring the
+    controller's free-space error without the simulator's joint friction)."""
+
+    def __init__(self, log_path: Path, timeout: float = 60.0, frictionless: bool = False) -> None:
         if port_busy():
             raise RuntimeError(f"{HOST}:{PORT} is taken: another robot simulator runs on this machine")
         self.log_path = log_path
+        self.frictionless = frictionless
+        env = None
+        if frictionless:
+            # this package importable in the child whatever its PYTHONPATH
+            here = str(Path(__file__).resolve().parent.parent)
+            env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p))
+            cmd = [sys.executable, "-m", "franka_driver.franky_launch", "--frictionless"]
+        else:
+            cmd = [str(Path(sys.executable).parent / "franky-sim"), "-s", "mujoco", "--hostname", HOST]
         self._log = open(log_path, "w")
-        exe = str(Path(sys.executable).parent / "franky-sim")
-        self.proc = subprocess.Popen([exe, "-s", "mujoco", "--hostname", HOST], stdout=self._log,
-                                     stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, env=env)
         deadline = time.monotonic() + timeout
         while "Connect to the server" not in log_path.read_text():
             if self.proc.poll() is not None or time.monotonic() > deadline:
                 self.stop()
-                raise RuntimeError(f"franky-sim did not start:\n{log_path.read_text()}")
+                raise RuntimeError(f"{' '.join(cmd)} did not start:\n{log_path.read_text()}")
             time.sleep(0.1)
 
     @property
