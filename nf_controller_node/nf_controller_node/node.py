@@ -112,7 +112,9 @@ class _Attrs:
 # (see spin_pause): the waiting coroutine is resumed at most every half millisecond instead of
 # hundreds of thousands of times per second
 ACTION_POLL_PAUSE = 0.0005
-DRAIN_PERIOD = 0.002  # s, composed: how often the ticks' chunks, episode ends and faults are taken
+# s, composed: how often the ticks' chunks, episode ends and faults are taken (every wake-up of the
+# executor thread takes the GIL from the driver; rclpy's EventsExecutor has no guard conditions)
+DRAIN_PERIOD = 0.005
 MAX_FAULT_TEXT = 300  # characters of a fault reason in status, diagnostics and logs
 BASE_FRAME = "panda_link0"
 
@@ -194,14 +196,15 @@ class NFControllerNode(Node):
                 self.create_timer(max(p["state_timeout"] / 4.0, 0.001), self._on_watchdog)
         self._weights = RewardWeights.from_config(_Attrs(p))
         self._episode_ids = itertools.count(int(time.time() * 1000) * 1000)  # unique across restarts
-        self._episode_done: Future | None = None
         self._episode_run: EpisodeRun | None = None
         self._final_x: np.ndarray | None = None
         self._goal = None
         self._resetting = False
         self._unanswered: JointState | None = None  # the last state left unanswered (see _release_states)
-        ActionServer(self, RunEpisode, RUN_EPISODE, execute_callback=self._execute,
-                     goal_callback=self._on_goal, cancel_callback=self._on_cancel)
+        self._preparing = False  # the goal's set-up coroutine is pending (see spin_pause)
+        self._result: RunEpisode.Result | None = None  # of the goal that ended, for _report
+        ActionServer(self, RunEpisode, RUN_EPISODE, execute_callback=self._report, goal_callback=self._on_goal,
+                     handle_accepted_callback=self._on_accepted, cancel_callback=self._on_cancel)
         self.create_timer(0.2, self._publish_feedback)
         self.create_timer(1.0 / p["status_rate"], self._publish_status)
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
@@ -278,8 +281,7 @@ class NFControllerNode(Node):
             elif event.kind == EPISODE_END:
                 if event.run is self._episode_run:
                     self._final_x = event.x
-                    if self._episode_done is not None and not self._episode_done.done():
-                        self._episode_done.set_result(event.text)
+                    self._episode_ended(event.text)
             elif event.kind == FAULT:
                 self.get_logger().error(f"safe hold: {event.text}")
 
@@ -323,8 +325,7 @@ class NFControllerNode(Node):
         self._on_driver_thread(end)
         if not self.composed:
             self._drain()
-        if self._episode_done is not None and not self._episode_done.done():
-            self._episode_done.set_result(problem)
+        self._episode_ended(problem)
 
     def _publish_feedback(self) -> None:
         run, gh = self.loop.episode, self._goal
@@ -362,23 +363,70 @@ class NFControllerNode(Node):
 
     def spin_pause(self) -> float:
         """Seconds the executor thread sleeps after each spin slice (``ros_runtime.run_node``):
-        composed, while a RunEpisode goal runs, its coroutine would otherwise be resumed without
-        pause and take the GIL from the driver's tick (``ACTION_POLL_PAUSE``)."""
-        return ACTION_POLL_PAUSE if self.composed and self._goal is not None else 0.0
+        composed, while a goal's set-up coroutine waits (policy version, reset), rclpy would resume
+        it without pause and take the GIL from the driver's tick (``ACTION_POLL_PAUSE``). The
+        episode itself is waited for without a coroutine (``_on_accepted``)."""
+        return ACTION_POLL_PAUSE if self.composed and self._preparing else 0.0
 
-    async def _execute(self, gh: object) -> RunEpisode.Result:
+    # An accepted goal is run without a coroutine that waits for the episode's end: rclpy 7.1
+    # resumes a coroutine awaiting a pending future again at once, so one waiting through a
+    # 5 s episode kept the executor thread busy (80 % of a core) and took the GIL from the driver's
+    # ticks. Instead: ``_on_accepted`` starts the short set-up coroutine (``_prepare``: policy
+    # version, reset, start) and returns; the episode's end (``_drain``), a cancel or a failure
+    # calls ``_episode_ended``, which builds the result and only then executes the goal with
+    # ``_report`` (a plain function). The goal is "accepted" while it runs, "executing" for an
+    # instant, then succeeded, canceled or aborted.
+    def _on_accepted(self, gh: object) -> None:
         self._goal = gh
+        self._result = None
+        self._preparing = True
+        self.executor.create_task(self._prepare(gh))
+
+    async def _prepare(self, gh: object) -> None:
         try:
-            result = await self._run_episode(gh.request)
+            problem = await self._start_episode(gh.request)
         except Exception as exc:  # never leave an episode half-open: log, end it, report
             self.get_logger().error(f"episode failed: {exc!r}")
-            self._end_episode_now(f"aborted: {exc}")
-            result = RunEpisode.Result(completed=False, message=f"episode failed: {exc}")
+            problem = f"episode failed: {exc}"
+            if self._episode_run is not None:
+                self._stop_run(self._episode_run, f"aborted: {exc}")
         finally:
-            self._goal = None
-            self._episode_run = None
-            self._resetting = False
-            self._release_states()  # a failed reset must not leave the states unanswered
+            self._preparing = False
+        if problem and self._goal is gh and self._result is None:
+            self._finish(RunEpisode.Result(completed=False, message=problem))
+
+    def _stop_run(self, run: EpisodeRun, problem: str) -> None:
+        """End ``run`` on the driver thread if it is the one running (no result: the caller reports)."""
+
+        def end() -> None:
+            if self.loop.episode is run:
+                self.host.end_episode(problem)
+
+        self._on_driver_thread(end)
+
+    def _episode_ended(self, problem: str) -> None:
+        """The running episode is over (``problem`` empty when it completed): report the goal."""
+        run = self._episode_run
+        if run is None or self._result is not None:
+            return
+        self._finish(self._episode_result(run, problem))
+
+    def _finish(self, result: RunEpisode.Result) -> None:
+        """End the goal with ``result``: clean up, then execute it (``_report`` gives the result)."""
+        gh = self._goal
+        self._result = result
+        self._episode_run = None
+        self._resetting = False
+        self._release_states()  # a failed reset must not leave the states unanswered
+        if gh is not None:
+            gh.execute()
+
+    def _report(self, gh: object) -> RunEpisode.Result:
+        """Execute callback of a goal whose episode is already over: its terminal state and result."""
+        result = self._result if self._result is not None else RunEpisode.Result(
+            completed=False, message="episode ended without a result")
+        self._goal = None
+        self._result = None
         if result.completed:
             gh.succeed()
         elif gh.is_cancel_requested:
@@ -388,18 +436,17 @@ class NFControllerNode(Node):
             self.get_logger().error(f"episode not completed: {result.message}")
         return result
 
-    async def _run_episode(self, goal: RunEpisode.Goal) -> RunEpisode.Result:
+    async def _start_episode(self, goal: RunEpisode.Goal) -> str:
+        """Wait for the goal's policy version, reset the world and start the episode: "" once it
+        runs (its end comes through ``_episode_ended``), else why it could not start."""
         p, loop = self.params, self.loop
-        result = RunEpisode.Result(completed=False)
         duration = check_goal_duration(goal.duration, p["episode_seconds"])  # checked when accepted
         if not await self._wait_until(lambda: loop.policy_version == goal.policy_version and loop.policy is not None,
                                       p["policy_wait"]):
-            result.message = (f"controller has policy version {loop.policy_version}, the episode asks for "
-                              f"{goal.policy_version} (waited {p['policy_wait']:.0f} s)")
-            return result
+            return (f"controller has policy version {loop.policy_version}, the episode asks for "
+                    f"{goal.policy_version} (waited {p['policy_wait']:.0f} s)")
         if loop.fault:
-            result.message = f"safe hold: {loop.fault} (call {self.get_name()}/clear_fault)"
-            return result
+            return f"safe hold: {loop.fault} (call {self.get_name()}/clear_fault)"
         params = loop.policy
         sigma = None
         if not goal.deterministic:
@@ -412,15 +459,18 @@ class NFControllerNode(Node):
         run = EpisodeRun(spec)
         self._episode_run = run
         self._final_x = None
-        self._episode_done = Future()
         if self.composed:
             problem = await self._begin_composed(run, int(goal.seed))
         else:
             problem = await self._begin_standalone(run, int(goal.seed))
-        if problem:
-            result.message = problem
-            return result
-        problem = await self._episode_done
+        if self._episode_run is not run:  # canceled while the world was reset: already reported
+            self._stop_run(run, "canceled")
+            return ""
+        return problem
+
+    def _episode_result(self, run: EpisodeRun, problem: str) -> RunEpisode.Result:
+        spec = run.spec
+        result = RunEpisode.Result(completed=not problem)
         result.episode_id = spec.episode_id
         result.n_chunks = run.chunks_sent
         result.episode_return = run.episode_return
@@ -431,7 +481,6 @@ class NFControllerNode(Node):
         if run.done and self._final_x is not None:
             result.final_distance = float(np.linalg.norm(self._final_x - spec.x_goal))
         result.torque_norm = run.mean_torque
-        result.completed = not problem
         result.message = problem or f"{run.K} decisions, {run.chunks_sent} chunks"
         return result
 
