@@ -7,7 +7,8 @@ Starts the arm (composed, then separate) and the learner (own ROS_DOMAIN_ID, loo
 ``--repeats`` times each, every learner doing one iteration, interleaved; then the floor of the
 two-process runtime (``pingpong.py``: a bare rclpy round trip between two processes, no work) and
 the in-process trainer on the same settings. Writes ``bench/results/stack.json``. Targets (issue 13):
-lockstep >= 10,000 steps/s (composed), an iteration over ROS <= 1.3x the one in process.
+lockstep >= 10,000 steps/s (composed), an iteration over ROS <= 1.3x the one in process. The
+composed driver loop is also timed with no ROS at all (its ceiling).
 The settings are ``make run``'s (``config/gear_learn.yaml``) unless ``--config`` says otherwise.
 Usage: python bench/bench_stack.py [--quick] [--config config/gear.yaml]
 """
@@ -72,6 +73,50 @@ def in_process_iteration(rollouts: int, seconds: float, config: Path = CONFIG) -
     return trainer.train_iteration()
 
 
+def loop_alone(rollouts: int, seconds: float, config: Path = CONFIG) -> list[float]:
+    """Steps/s of each episode of the composed driver loop with no ROS at all (``SimDriverLoop`` +
+    ``ControllerHost`` on a thread, episodes started and drained by hand): the ceiling of the
+    composed stack, what ROS's slow side and publishing take from it."""
+    import threading
+
+    from learner_node.config import TrainConfig
+    from learner_node.trainer import Trainer
+    from nf_controller_node.arm_model import ArmModel
+    from nf_controller_node.control_loop import ControlLoop, LoopConfig
+    from nf_controller_node.episode import EpisodeRun, EpisodeSpec
+    from nf_controller_node.host import EPISODE_END, ControllerHost
+    from sim_bridge_node.bridge import SimBridge
+    from sim_bridge_node.composed import SimDriverLoop
+    from sim_bridge_node.env import InsertionEnv
+
+    cfg = TrainConfig.from_sources(config, {"rollouts_per_iter": rollouts, "episode_seconds": seconds})
+    env = InsertionEnv(cfg.task)
+    params = Trainer(cfg).policy.to_params()
+    params.version = 1
+    loop = ControlLoop(ArmModel(part=env.scene.held_part), config=LoopConfig(idle_mode="pause",
+                                                                             max_consecutive_misses=0))
+    loop.set_policy(params)
+    host = ControllerHost(loop)
+    driver = SimDriverLoop(SimBridge(env), host, realtime=False)
+    stop = threading.Event()
+    thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)
+    thread.start()
+    rates = []
+    try:
+        for i in range(rollouts):
+            spec = EpisodeSpec(i, 1, seconds, cfg.decision_period, 0.001, None, i, params.x_ref.copy())
+            run = EpisodeRun(spec)
+            t0 = time.perf_counter()
+            driver.begin_episode(i, run).result(timeout=60.0)
+            while not any(e.kind == EPISODE_END for e in host.drain()):
+                time.sleep(0.001)
+            rates.append(run.steps / (time.perf_counter() - t0))
+    finally:
+        stop.set()
+        thread.join(10.0)
+    return rates
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="2 repeats of 3 short episodes")
@@ -100,6 +145,8 @@ def main() -> int:
         floor.append(json.loads(done.stdout.strip().splitlines()[-1]))
         print(f"rclpy ping-pong floor {k + 1}/{repeats}: {floor[-1]['round_trips_per_s']:.0f} round trips/s",
               flush=True)
+    alone = loop_alone(rollouts, seconds, args.config)
+    print(f"composed loop without ROS: median {statistics.median(alone):.0f} steps/s", flush=True)
     local = [in_process_iteration(rollouts, seconds, args.config) for _ in range(2)]
     rates = [steps / r["rollout_seconds"] for r in rows["composed"]]
     rates_separate = [steps / r["rollout_seconds"] for r in rows["separate"]]
@@ -116,6 +163,9 @@ def main() -> int:
         "lockstep_steps_per_s_separate": {"median": statistics.median(rates_separate), "min": min(rates_separate),
                                           "max": max(rates_separate), "all": rates_separate,
                                           "what": "sim_bridge and nf_controller as two processes over topics"},
+        "lockstep_steps_per_s_loop_alone": {"median": statistics.median(alone), "min": min(alone),
+                                            "max": max(alone), "all": alone,
+                                            "what": "the composed driver loop with no ROS (one per episode)"},
         "pingpong_floor": {"round_trips_per_s_median": statistics.median(f["round_trips_per_s"] for f in floor),
                            "median_us": statistics.median(f["median_us"] for f in floor), "all": floor,
                            "what": "bare rclpy round trip between two processes (bench/pingpong.py), no work"},

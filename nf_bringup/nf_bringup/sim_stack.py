@@ -22,9 +22,11 @@ from nf_controller_node.node import NFControllerNode
 from nf_controller_node.ros_runtime import freeze_heap, run_node
 from sim_bridge_node.node import SimBridgeNode
 
-# GIL hand-over interval (s) of the composed process. Python's default, 5 ms, lets a busy executor
-# thread keep a waking driver thread waiting for up to 5 ms; 100 us bounds that wait to a tenth of
-# a control period (bench/bench_realtime.py --composed measures what it costs and gives).
+# GIL hand-over interval (s) of the composed process in realtime mode. Python's default, 5 ms, lets
+# a busy executor thread keep a waking driver thread waiting for up to 5 ms; 100 us bounds that wait
+# to a tenth of a control period (bench/bench_realtime.py --composed measures what it costs and
+# gives). Lockstep keeps the default: nothing waits on a wall clock there, and every forced
+# hand-over between the driver and the executor thread costs steps.
 SWITCH_INTERVAL = 1e-4
 
 
@@ -40,12 +42,13 @@ def _start(nodes: list[Node]) -> None:
     freeze_heap()  # no full garbage collection of the start-up objects inside the 1 kHz loop
     for node in nodes:
         if isinstance(node, SimBridgeNode):
+            if not node.lockstep:
+                sys.setswitchinterval(SWITCH_INTERVAL)
             node.start_driver()
 
 
 def main(args: list[str] | None = None) -> int:
     """Console script ``nf_sim_stack``."""
-    sys.setswitchinterval(SWITCH_INTERVAL)
     return run_node(make_nodes, "nf_sim_stack", "The MuJoCo Panda and the stable flow controller composed in "
                     "one process (the 1 kHz tick is a direct call; both nodes keep their ROS interfaces).",
                     args, started=_start)

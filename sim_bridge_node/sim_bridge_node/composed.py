@@ -79,9 +79,10 @@ class SimDriverLoop:
     def _step(self, now: float) -> None:
         bridge, host = self.bridge, self.host
         env = bridge.env
-        # an episode records the depth at every decision; between episodes a fresh value every
-        # TASK_EVERY steps is plenty (status and diagnostics only)
-        if host.loop.episode is not None or bridge.steps % TASK_EVERY == 0:
+        # an episode records the depth at its decisions' first states (and ends on one); between
+        # episodes a fresh value every TASK_EVERY steps is plenty (status and diagnostics only)
+        run = host.loop.episode
+        if (run.steps % run.P == 0) if run is not None else bridge.steps % TASK_EVERY == 0:
             self._report_task()
         tau = host.tick(bridge.stamp_ns, env.q, env.dq, now)
         if bridge.accept_command(tau, now) != ACCEPTED:
