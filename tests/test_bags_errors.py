@@ -11,10 +11,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from mcap.reader import make_reader
-from nf_bags import bagfile, reader
+from nf_bags import bagfile, reader, resim
 from nf_bags.record import message_class
 from nf_bags.writer import BagWriter, WriterConfig, qos_dict
 
@@ -187,3 +188,24 @@ def test_writer_metadata_infinite_durations_and_closed_state_embedded_in_the_mca
     assert info["custom_data"]["nf_bags.state"] == "closed"
     assert info["message_count"] == 2 and info["version"] == 9
     assert bagfile.load_metadata(bag)["custom_data"]["nf_bags.state"] == "closed"
+
+
+def test_resim_of_a_thinned_recording_names_the_gap_instead_of_comparing_wrong_states(tmp_path):
+    """A composed sim with monitor_period > 0 records every N-th state and command: re-simulation
+    must stop at the first gap and say why, never compare one step with a state N steps later."""
+    start = resim.episode_starts(SAMPLE)[1]
+    stamps = reader.joint_trajectory(SAMPLE).stamp_ns
+    drop = int(stamps[np.flatnonzero(stamps == start)[0] + 1])  # the state right after the reset
+    path = tmp_path / "thinned"
+    w = BagWriter(path, WriterConfig())
+    for d in reader.read_messages(SAMPLE, {"/joint_states", "/effort_controller/commands", "/task_status"}):
+        m = d.raw
+        if m.topic not in w.topics:
+            w.add_topic(m.topic, m.type, m.schema.data.decode())
+        if m.topic == "/joint_states" and reader.stamp_ns(d.msg.header) == drop:
+            continue
+        w.write(m.topic, m.data, m.log_time)
+    w.close()
+    assert len(reader.joint_trajectory(path).stamp_ns) == len(stamps) - 1
+    assert_clean_error(run_tool("nf_bags.resim", str(path), "--episode", "1"), "nothing to re-simulate",
+                       "2000000 ns gap", "monitor_period")

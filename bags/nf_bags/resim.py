@@ -66,6 +66,7 @@ def resimulate(bag: str | Path, start_ns: int | None = None, task: str | None = 
     bridge = SimBridge(InsertionEnv(task or recorded_task(bag) or "gear"),
                        BridgeConfig(mode="lockstep", driver_gravity_compensation=driver_gravity_compensation))
     bridge.reset(q=traj.q[i])
+    step_ns = round(bridge.dt * 1e9)  # consecutive recorded states are one physics step apart
     errors = np.zeros(3)
     steps = 0
     reason = "end of the recording"
@@ -81,6 +82,12 @@ def resimulate(bag: str | Path, start_ns: int | None = None, task: str | None = 
             break
         if end_ns is not None and int(traj.stamp_ns[i + 1]) >= end_ns:
             reason = "the next reset"
+            break
+        gap = int(traj.stamp_ns[i + 1]) - stamp
+        if gap != step_ns:
+            reason = (f"a {gap} ns gap to the next recorded state, not one {step_ns} ns step (the composed "
+                      f"sim_bridge's monitor_period thins joint_states and commands; re-simulation needs "
+                      f"every step: record with monitor_period 0)")
             break
         if bridge.accept_command(commands[stamp], 0.0) != ACCEPTED:
             raise ValueError(f"the recorded command for {stamp} ns is not valid: {bridge.last_error}")
