@@ -34,11 +34,14 @@ TARGET_ROS_OVER_IN_PROCESS = 1.3
 
 
 def ros_iteration(rollouts: int, seconds: float, domain: int, workdir: Path, composed: bool,
-                  config: Path = CONFIG) -> dict:
-    """One PPO iteration over ROS; returns the learner's metrics row."""
+                  config: Path = CONFIG, monitor_period: float | None = None) -> dict:
+    """One PPO iteration over ROS; returns the learner's metrics row. ``monitor_period`` overrides
+    the composed sim's (s between its joint_states and applied-command messages; 0: every step)."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     params = ["--ros-args", "--params-file", str(config)]
     lockstep = ["-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0"]
+    if monitor_period is not None:
+        lockstep += ["-p", f"sim_bridge:monitor_period:={monitor_period}"]
     arm = [("nf_bringup.sim_stack", lockstep)] if composed else \
         [("sim_bridge_node.node", []), ("nf_controller_node.node", lockstep)]
     procs = [subprocess.Popen([sys.executable, "-m", mod, *params, *extra], env=env, stdout=subprocess.DEVNULL,
@@ -122,6 +125,9 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="2 repeats of 3 short episodes")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--config", type=Path, default=CONFIG, help="parameters file (default: make run's)")
+    parser.add_argument("--monitor-period", type=float, default=None,
+                        help="composed sim's monitor_period (s; 0: joint_states and commands every step; "
+                             "default: the config's)")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "stack.json")
     args = parser.parse_args()
     rollouts, seconds, repeats = (3, 1.0, 2) if args.quick else (15, 5.0, args.repeats)
@@ -131,7 +137,8 @@ def main() -> int:
         for k in range(repeats):
             for j, how in enumerate(rows):
                 row = ros_iteration(rollouts, seconds, 150 + (os.getpid() + 2 * k + j) % 50, Path(tmp),
-                                    composed=how == "composed", config=args.config)
+                                    composed=how == "composed", config=args.config,
+                                    monitor_period=args.monitor_period)
                 rows[how].append(row)
                 print(f"over ROS, {how} {k + 1}/{repeats}: rollouts {row['rollout_seconds']:.2f} s "
                       f"({steps / row['rollout_seconds']:.0f} steps/s), update {row['update_seconds']:.2f} s",
@@ -157,7 +164,8 @@ def main() -> int:
         "benchmark": "stack", "date": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": platform.machine(),
         "cpus": os.cpu_count(), "load_1min": os.getloadavg()[0],
         "config": str(args.config.resolve().relative_to(REPO)) if args.config.resolve().is_relative_to(REPO)
-        else str(args.config), "rollouts": rollouts, "episode_seconds": seconds, "repeats": repeats,
+        else str(args.config), "monitor_period": args.monitor_period, "rollouts": rollouts,
+        "episode_seconds": seconds, "repeats": repeats,
         "lockstep_steps_per_s": {"median": statistics.median(rates), "min": min(rates), "max": max(rates),
                                  "all": rates, "target": TARGET_STEPS_PER_S, "what": "composed (nf_sim_stack)"},
         "lockstep_steps_per_s_separate": {"median": statistics.median(rates_separate), "min": min(rates_separate),
