@@ -57,6 +57,7 @@ def run(seconds: float, log_dir: Path) -> dict:
         arm = spec.arm_model(panda_spec.GEAR_PART)
         loop = ControlLoop(arm, TorqueLawConfig(gravity_compensation=False),
                            LoopConfig(idle_mode="policy", max_consecutive_misses=0), joint_names=spec.joint_names)
+        spec.fit_loop(loop)  # the FR3's ranges and limits, as nf_franka_stack does
         host = ControllerHost(loop)
         tcp_arm = spec.arm_model(panda_spec.GEAR_PART)
         x0 = tcp_arm.tcp_position(np.asarray(state.q))

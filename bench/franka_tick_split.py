@@ -49,6 +49,7 @@ def main() -> int:
         spec = identify("auto", state, robot.load_model()).spec
         loop = ControlLoop(spec.arm_model(panda_spec.GEAR_PART), TorqueLawConfig(gravity_compensation=False),
                            LoopConfig(idle_mode="hold", max_consecutive_misses=0), joint_names=spec.joint_names)
+        spec.fit_loop(loop)  # the FR3's ranges and limits, as nf_franka_stack does
         host = ControllerHost(loop)
         perf = time.perf_counter
         n = args.ticks

@@ -38,6 +38,7 @@ class DriverRig:
         self.loop = ControlLoop(self.arm, TorqueLawConfig(gravity_compensation=False),
                                 LoopConfig(idle_mode=idle_mode, max_consecutive_misses=0),
                                 joint_names=spec.joint_names)
+        spec.fit_loop(self.loop)  # as nf_franka_stack does
         self.host = ControllerHost(self.loop)
         self.tcp_arm = spec.arm_model(panda_spec.GEAR_PART)
         self.x0 = self.tcp_arm.tcp_position(np.asarray(state.q))

@@ -83,6 +83,7 @@ def _rig(robot: FakeRobot, **config: object) -> tuple[FrankaDriverLoop, ControlL
     arm = FR3.arm_model(panda_spec.GEAR_PART)
     loop = ControlLoop(arm, TorqueLawConfig(gravity_compensation=False), LoopConfig(idle_mode="hold"),
                        joint_names=FR3.joint_names)
+    FR3.fit_loop(loop)
     host = ControllerHost(loop)
     tcp = FR3.arm_model(panda_spec.GEAR_PART).tcp_position
     x0 = tcp(Q0)
@@ -192,3 +193,27 @@ def test_a_restarted_session_anchors_the_hold_where_the_arm_is_now():
     finally:
         stop.set()
         thread.join(5)
+
+
+def test_fit_loop_gives_the_loop_the_fr3s_ranges_instead_of_the_pandas():
+    """A ControlLoop defaults to the Panda's plausibility ranges: fr3_joint6 may reach 4.52 rad, the
+    Panda's joint 6 only 3.75; after ``fit_loop`` a state the FR3 can be in is accepted and one beyond
+    its range (+ the margin) is not, and the torque limits are the smaller of both."""
+    loop = ControlLoop(FR3.arm_model(panda_spec.GEAR_PART), TorqueLawConfig(gravity_compensation=False),
+                       LoopConfig(idle_mode="hold"), joint_names=FR3.joint_names)
+    q = Q0.copy()
+    q[5] = 4.3  # inside the FR3's range, beyond the Panda's
+    _, fault = loop.on_joint_state(FR3.joint_names, q, np.zeros(7), 1, 0.0)
+    assert "implausible" in fault
+    loop = ControlLoop(FR3.arm_model(panda_spec.GEAR_PART), TorqueLawConfig(gravity_compensation=False),
+                       LoopConfig(idle_mode="hold"), joint_names=FR3.joint_names)
+    FR3.fit_loop(loop)
+    margin = panda_spec.Q_PLAUSIBLE_MARGIN
+    assert np.allclose(loop.q_max, FR3.q_max + margin) and np.allclose(loop.q_min, FR3.q_min - margin)
+    tau, fault = loop.on_joint_state(FR3.joint_names, q, np.zeros(7), 1, 0.0)
+    assert fault == "" and np.all(np.isfinite(tau))
+    q[5] = FR3.q_max[5] + margin + 0.01
+    _, fault = loop.on_joint_state(FR3.joint_names, q, np.zeros(7), 2, 0.001)
+    assert "implausible" in fault
+    law = loop.controller.law
+    assert np.all(law.torque_limits <= FR3.torque_limits)

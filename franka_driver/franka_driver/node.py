@@ -34,7 +34,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from nf_controller_node import topics
-from nf_controller_node.panda_spec import DQ_MAX, HELD_PART_NAMES, Q_MAX, held_part_by_name
+from nf_controller_node.panda_spec import HELD_PART_NAMES, held_part_by_name
 from nf_controller_node.ros_runtime import declare_read_only
 
 from .loop import DriverConfig, FrankaDriverLoop, summary_us
@@ -165,14 +165,8 @@ class FrankaDriverNode(Node):
             raise ValueError(f"controller joints {list(loop.joints.joint_names)} differ from the robot's "
                              f"{self.joint_names}")
         spec = self.spec
-        # the connected arm's joint ranges (the loop's plausibility bounds default to the Panda's)
-        margin = loop.q_max - Q_MAX
-        loop.q_min = spec.q_min - margin
-        loop.q_max = spec.q_max + margin
-        loop.dq_max = spec.dq_max * (loop.dq_max / DQ_MAX)
+        spec.fit_loop(loop)  # the connected arm's ranges and limits (the loop's defaults are the Panda's)
         law = loop.controller.law
-        law.torque_limits[:] = np.minimum(law.torque_limits, spec.torque_limits)
-        law.set_joint_limits(spec.q_min, spec.q_max)  # where the joint-limit springs act
         tcp = self._tcp_arm.tcp_position
         self.driver = FrankaDriverLoop(self.robot, controller.host, tcp, self.config, self.franka.Torques,
                                        self.exceptions, after_tick=self._after_tick, connect=self._connect)

@@ -63,6 +63,18 @@ class ArmSpec:
         return ArmModel(self.urdf_path(), armature=armature, part=part, joint_names=self.joint_names,
                         finger_joint_names=self.finger_joint_names, hand_frame=self.hand_frame)
 
+    def fit_loop(self, loop: Any) -> None:
+        """Give a ``ControlLoop`` this arm's limits (its defaults are the Panda's): the plausibility
+        bounds of joint states (the arm's ranges + the same margin, its velocity limits x the same
+        factor), torque limits no larger than the arm's, and the joint-limit springs at its ranges."""
+        margin = loop.q_max - panda_spec.Q_MAX
+        loop.q_min = self.q_min - margin
+        loop.q_max = self.q_max + margin
+        loop.dq_max = self.dq_max * (loop.dq_max / panda_spec.DQ_MAX)
+        law = loop.controller.law
+        law.torque_limits[:] = np.minimum(law.torque_limits, self.torque_limits)
+        law.set_joint_limits(self.q_min, self.q_max)
+
 
 # Franka's datasheets (FR3: "Robot and interface specifications", Panda: the same for the Panda).
 FR3 = ArmSpec(
