@@ -7,7 +7,6 @@ docs/hardware.md gives."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import time
 from pathlib import Path
@@ -105,11 +104,11 @@ def test_stack_holds_without_a_policy_then_follows_one(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.timeout(1200)  # reset motions on a simulator that runs below real time on a loaded machine
-@pytest.mark.skipif(os.environ.get("NF_FRANKA_LEARNING") != "1", reason=(
-    "opt-in (NF_FRANKA_LEARNING=1): franky-sim in real time, 26 s on a quiet machine, 2-5 min on a "
-    "loaded one. With the joint-limit springs no reset motion left fr3_joint6's range in 7 runs; 3 of "
-    "the last 4 passed, and in the other the probe saw only idle controller statuses while the "
-    "learner's second iteration ran (not explained; issue 14 stays open)"))
+# 26-40 s here. It used to fail now and then on a loaded machine: the goal's set-up coroutine, resumed
+# without pause during a reset motion, held the controller's status timer back for up to 1.4 s, and
+# the probe saw no status of iteration 2's episodes. The set-up runs on a timer now (status gaps
+# <= 48 ms under the same load, 2 of 2 passed); one rerun stays as a margin for a starved simulator.
+@pytest.mark.flaky(reruns=1)
 def test_learning_through_reset_motions_and_a_learner_killed_mid_episode(tmp_path):
     domain = allocate_domain_id()
     probe = Probe(domain)

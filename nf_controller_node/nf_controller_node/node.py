@@ -20,9 +20,12 @@ from __future__ import annotations
 
 import array
 import itertools
+import math
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future as ConcurrentFuture
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -34,7 +37,6 @@ from nf_msgs.srv import ResetSim
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.task import Future
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
@@ -108,10 +110,8 @@ class _Attrs:
         self.__dict__.update(d)
 
 
-# s, composed: the executor thread's sleep between spin slices while an episode's action waits
-# (see spin_pause): the waiting coroutine is resumed at most every half millisecond instead of
-# hundreds of thousands of times per second
-ACTION_POLL_PAUSE = 0.0005
+SETUP_POLL = 0.002  # s, how often a goal being set up looks at its policy version and reset
+SERVICE_WAIT = 5.0  # s, standalone: longest wait for the sim's reset service to appear
 # s, composed: how often the ticks' chunks, episode ends and faults are taken (every wake-up of the
 # executor thread takes the GIL from the driver; rclpy's EventsExecutor has no guard conditions)
 DRAIN_PERIOD = 0.005
@@ -152,6 +152,18 @@ def _loop_from(p: dict, arm: ArmModel | None = None, joint_names: Sequence[str] 
     if joint_names is None:
         return ControlLoop(arm, law, config)
     return ControlLoop(arm, law, config, joint_names=joint_names)
+
+
+@dataclass
+class _Setup:
+    """A RunEpisode goal being set up: waiting for its policy version, then for the world's reset."""
+
+    gh: Any  # rclpy ServerGoalHandle
+    duration: float  # s
+    policy_deadline: float  # monotonic s
+    run: EpisodeRun | None = None
+    reset: Any = None  # composed: the driver's concurrent future; standalone: the reset service call
+    reset_deadline: float = math.inf  # monotonic s
 
 
 class NFControllerNode(Node):
@@ -201,7 +213,8 @@ class NFControllerNode(Node):
         self._goal = None
         self._resetting = False
         self._unanswered: JointState | None = None  # the last state left unanswered (see _release_states)
-        self._preparing = False  # the goal's set-up coroutine is pending (see spin_pause)
+        self._setup: _Setup | None = None  # the goal being set up (see _on_accepted)
+        self._setup_timer = None
         self._result: RunEpisode.Result | None = None  # of the goal that ended, for _report
         ActionServer(self, RunEpisode, RUN_EPISODE, execute_callback=self._report, goal_callback=self._on_goal,
                      handle_accepted_callback=self._on_accepted, cancel_callback=self._on_cancel)
@@ -316,6 +329,9 @@ class NFControllerNode(Node):
         """End the running episode from the slow side (cancel, failure): on the driver thread."""
         run = self._episode_run
         if run is None:
+            if self._setup is not None and self._result is None:  # still waiting for its policy
+                self._stop_setup()
+                self._finish(RunEpisode.Result(completed=False, message=problem))
             return
 
         def end() -> None:
@@ -334,66 +350,131 @@ class NFControllerNode(Node):
         gh.publish_feedback(RunEpisode.Feedback(t=run.t, lyapunov=self._sample[0], insertion_depth=self.host.depth,
                                                 chunks_sent=run.chunks_sent))
 
-    def _sleep(self, seconds: float) -> Future:
-        """A future done after ``seconds`` (for ``await`` in the action's coroutine)."""
-        future = Future()
-
-        def fire() -> None:
-            timer.cancel()
-            self.destroy_timer(timer)
-            future.set_result(None)
-
-        timer = self.create_timer(seconds, fire)
-        return future
-
-    async def _wait_until(self, predicate: Callable[[], bool], timeout: float, poll: float = 0.01) -> bool:
-        deadline = time.monotonic() + timeout
-        while not predicate():
-            if time.monotonic() > deadline:
-                return False
-            await self._sleep(poll)
-        return True
-
-    async def _result_of(self, future: ConcurrentFuture, timeout: float) -> object:
-        """Await a driver-thread future from the action's coroutine (polled every millisecond)."""
-        if not await self._wait_until(future.done, timeout, poll=0.001):
-            future.cancel()
-            raise TimeoutError(f"the driver did not run the request within {timeout:.0f} s")
-        return future.result()
-
-    def spin_pause(self) -> float:
-        """Seconds the executor thread sleeps after each spin slice (``ros_runtime.run_node``):
-        composed, while a goal's set-up coroutine waits (policy version, reset), rclpy would resume
-        it without pause and take the GIL from the driver's tick (``ACTION_POLL_PAUSE``). The
-        episode itself is waited for without a coroutine (``_on_accepted``)."""
-        return ACTION_POLL_PAUSE if self.composed and self._preparing else 0.0
-
-    # An accepted goal is run without a coroutine that waits for the episode's end: rclpy 7.1
-    # resumes a coroutine awaiting a pending future again at once, so one waiting through a
-    # 5 s episode kept the executor thread busy (80 % of a core) and took the GIL from the driver's
-    # ticks. Instead: ``_on_accepted`` starts the short set-up coroutine (``_prepare``: policy
-    # version, reset, start) and returns; the episode's end (``_drain``), a cancel or a failure
-    # calls ``_episode_ended``, which builds the result and only then executes the goal with
-    # ``_report`` (a plain function). The goal is "accepted" while it runs, "executing" for an
-    # instant, then succeeded, canceled or aborted.
+    # An accepted goal runs without any coroutine: rclpy 7.1 resumes a coroutine that awaits a
+    # pending future again at once, so a coroutine waiting through an episode kept the executor
+    # thread resuming it and taking the GIL from the driver's ticks, and one waiting through a
+    # Franka reset motion held the status timer back for up to 1.4 s on a loaded machine.
+    # Instead: ``_on_accepted`` starts the set-up, which a SETUP_POLL timer advances (policy
+    # version, then the world's reset: the driver's future or the reset service's answer) until the
+    # episode runs; the episode's end (``_drain``), a cancel or a failure calls ``_episode_ended``,
+    # which builds the result and only then executes the goal with ``_report`` (a plain function).
+    # The goal is "accepted" while it is set up and runs, "executing" for an instant, then
+    # succeeded, canceled or aborted.
     def _on_accepted(self, gh: object) -> None:
         self._goal = gh
         self._result = None
-        self._preparing = True
-        self.executor.create_task(self._prepare(gh))
-
-    async def _prepare(self, gh: object) -> None:
         try:
-            problem = await self._start_episode(gh.request)
+            duration = check_goal_duration(gh.request.duration, self.params["episode_seconds"])
+        except ValueError as exc:  # checked when the goal was accepted: not expected
+            self._finish(RunEpisode.Result(completed=False, message=str(exc)))
+            return
+        self._setup = _Setup(gh, duration, time.monotonic() + self.params["policy_wait"])
+        self._setup_timer = self.create_timer(SETUP_POLL, self._advance_setup)
+        self._advance_setup()
+
+    def _advance_setup(self) -> None:
+        setup = self._setup
+        if setup is None:
+            self._stop_setup()
+            return
+        try:
+            problem = self._setup_step(setup)
         except Exception as exc:  # never leave an episode half-open: log, end it, report
             self.get_logger().error(f"episode failed: {exc!r}")
             problem = f"episode failed: {exc}"
-            if self._episode_run is not None:
-                self._stop_run(self._episode_run, f"aborted: {exc}")
-        finally:
-            self._preparing = False
-        if problem and self._goal is gh and self._result is None:
+            self._resetting = False
+            if setup.run is not None:
+                self._stop_run(setup.run, f"aborted: {exc}")
+        if problem is None:  # still waiting
+            return
+        self._stop_setup()
+        if problem and self._goal is setup.gh and self._result is None:
             self._finish(RunEpisode.Result(completed=False, message=problem))
+
+    def _stop_setup(self) -> None:
+        self._setup = None
+        timer, self._setup_timer = self._setup_timer, None
+        if timer is not None:
+            timer.cancel()
+            self.destroy_timer(timer)
+
+    def _setup_step(self, setup: _Setup) -> str | None:
+        """Advance ``setup``: None while it waits, "" once the episode runs, else why it cannot."""
+        p, loop = self.params, self.loop
+        goal = setup.gh.request
+        if setup.run is not None:
+            return self._poll_reset(setup)
+        if not (loop.policy_version == goal.policy_version and loop.policy is not None):
+            if time.monotonic() <= setup.policy_deadline:
+                return None
+            return (f"controller has policy version {loop.policy_version}, the episode asks for "
+                    f"{goal.policy_version} (waited {p['policy_wait']:.0f} s)")
+        if loop.fault:
+            return f"safe hold: {loop.fault} (call {self.get_name()}/clear_fault)"
+        params = loop.policy
+        sigma = None
+        if not goal.deterministic:
+            sigma = np.broadcast_to(np.exp(params.log_std), (params.arch.dim,)).copy()
+        noise_seed = goal.noise_seed if goal.noise_seed >= 0 else goal.seed
+        spec = EpisodeSpec(episode_id=next(self._episode_ids), policy_version=params.version,
+                           duration=setup.duration, decision_period=p["decision_period"],
+                           control_period=p["control_period"], sigma=sigma,
+                           noise_seed=int(noise_seed) & 0x7FFFFFFFFFFFFFFF, x_goal=params.x_ref.copy(),
+                           weights=self._weights, chunk_decisions=p["chunk_decisions"])
+        setup.run = run = EpisodeRun(spec)
+        self._episode_run = run
+        self._final_x = None
+        self.host.set_task(float("nan"), False)
+        if self.composed:  # the driver resets its world (sim: at once; robot: a motion), then starts run
+            if self._driver is None:
+                return "no driver attached to the composed controller"
+            self._resetting = True
+            setup.reset = self._driver.begin_episode(int(goal.seed), run)
+            setup.reset_deadline = time.monotonic() + p["reset_timeout"]
+        elif self._reset_client is not None:  # the sim's reset service, then the state it stamps
+            self._resetting = True
+            loop.resetting = True  # answer no state until the episode starts (see _release_states)
+            setup.reset_deadline = time.monotonic() + SERVICE_WAIT
+        else:  # no reset: from the next state on
+            self.host.start_episode(run, 0, world_was_reset=False)
+            self._release_states()
+            return ""
+        return self._poll_reset(setup)
+
+    def _poll_reset(self, setup: _Setup) -> str | None:
+        """The reset of ``setup``: None while it runs, "" once the episode runs, else the problem."""
+        run, p = setup.run, self.params
+        if self.composed:
+            future = setup.reset
+            if not future.done():
+                if time.monotonic() <= setup.reset_deadline:
+                    return None
+                future.cancel()
+                self._resetting = False
+                return f"reset failed: the driver did not run the request within {p['reset_timeout']:.0f} s"
+            self._resetting = False
+            if future.exception() is not None:
+                return f"reset failed: {future.exception()}"
+        else:
+            if setup.reset is None:  # the service first
+                if not self._reset_client.service_is_ready():
+                    if time.monotonic() <= setup.reset_deadline:
+                        return None
+                    return f"reset service {p['reset_service']} not available"
+                setup.reset = self._reset_client.call_async(ResetSim.Request(seed=int(setup.gh.request.seed)))
+                return None
+            if not setup.reset.done():
+                return None
+            response = setup.reset.result()
+            self._resetting = False
+            if not response.success:
+                return f"reset failed: {response.message}"
+            if self._episode_run is run:
+                self.host.start_episode(run, int(response.stamp_ns), world_was_reset=True)
+            self._release_states()
+        if self._episode_run is not run:  # canceled while the world was reset: already reported
+            self._stop_run(run, "canceled")
+        return ""
 
     def _stop_run(self, run: EpisodeRun, problem: str) -> None:
         """End ``run`` on the driver thread if it is the one running (no result: the caller reports)."""
@@ -436,38 +517,6 @@ class NFControllerNode(Node):
             self.get_logger().error(f"episode not completed: {result.message}")
         return result
 
-    async def _start_episode(self, goal: RunEpisode.Goal) -> str:
-        """Wait for the goal's policy version, reset the world and start the episode: "" once it
-        runs (its end comes through ``_episode_ended``), else why it could not start."""
-        p, loop = self.params, self.loop
-        duration = check_goal_duration(goal.duration, p["episode_seconds"])  # checked when accepted
-        if not await self._wait_until(lambda: loop.policy_version == goal.policy_version and loop.policy is not None,
-                                      p["policy_wait"]):
-            return (f"controller has policy version {loop.policy_version}, the episode asks for "
-                    f"{goal.policy_version} (waited {p['policy_wait']:.0f} s)")
-        if loop.fault:
-            return f"safe hold: {loop.fault} (call {self.get_name()}/clear_fault)"
-        params = loop.policy
-        sigma = None
-        if not goal.deterministic:
-            sigma = np.broadcast_to(np.exp(params.log_std), (params.arch.dim,)).copy()
-        noise_seed = goal.noise_seed if goal.noise_seed >= 0 else goal.seed
-        spec = EpisodeSpec(episode_id=next(self._episode_ids), policy_version=params.version, duration=duration,
-                           decision_period=p["decision_period"], control_period=p["control_period"], sigma=sigma,
-                           noise_seed=int(noise_seed) & 0x7FFFFFFFFFFFFFFF, x_goal=params.x_ref.copy(),
-                           weights=self._weights, chunk_decisions=p["chunk_decisions"])
-        run = EpisodeRun(spec)
-        self._episode_run = run
-        self._final_x = None
-        if self.composed:
-            problem = await self._begin_composed(run, int(goal.seed))
-        else:
-            problem = await self._begin_standalone(run, int(goal.seed))
-        if self._episode_run is not run:  # canceled while the world was reset: already reported
-            self._stop_run(run, "canceled")
-            return ""
-        return problem
-
     def _episode_result(self, run: EpisodeRun, problem: str) -> RunEpisode.Result:
         spec = run.spec
         result = RunEpisode.Result(completed=not problem)
@@ -483,41 +532,6 @@ class NFControllerNode(Node):
         result.torque_norm = run.mean_torque
         result.message = problem or f"{run.K} decisions, {run.chunks_sent} chunks"
         return result
-
-    async def _begin_composed(self, run: EpisodeRun, seed: int) -> str:
-        """Composed: the driver resets its world (sim: at once; robot: a motion) and starts ``run`` at
-        the first state after it, on its own thread. Returns a problem, or "" once it runs."""
-        if self._driver is None:
-            return "no driver attached to the composed controller"
-        self._resetting = True
-        self.host.set_task(float("nan"), False)
-        try:
-            await self._result_of(self._driver.begin_episode(seed, run), self.params["reset_timeout"])
-        except Exception as exc:
-            return f"reset failed: {exc}"
-        finally:
-            self._resetting = False
-        return ""
-
-    async def _begin_standalone(self, run: EpisodeRun, seed: int) -> str:
-        """Standalone: reset the world through its service (if any), then start ``run`` at the state
-        stamped with the reset's stamp (no state is answered in between)."""
-        p, loop = self.params, self.loop
-        first_stamp = 0
-        if self._reset_client is not None:
-            self._resetting = True
-            loop.resetting = True  # answer no state until the episode starts (see _release_states)
-            if not await self._wait_until(self._reset_client.service_is_ready, 5.0):
-                return f"reset service {p['reset_service']} not available"
-            response = await self._reset_client.call_async(ResetSim.Request(seed=seed))
-            self._resetting = False
-            if not response.success:
-                return f"reset failed: {response.message}"
-            first_stamp = int(response.stamp_ns)
-        self.host.set_task(float("nan"), False)
-        self.host.start_episode(run, first_stamp, world_was_reset=self._reset_client is not None)
-        self._release_states()
-        return ""
 
     # ------------------------------------------------------------------ policy and faults
     def _on_policy(self, msg: PolicyParametersMsg) -> None:

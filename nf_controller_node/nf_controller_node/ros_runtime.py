@@ -79,7 +79,8 @@ def run_node(make_node: Callable[[], Node | Sequence[Node]], prog: str, descript
     resumes a coroutine that awaits a pending future at once, again and again, so while an action
     waits (for an episode, say) the executor thread spins without pause (``tests/test_ros_runtime.py``
     counts it). Alone that only burns a core; next to a driver thread it takes the GIL from the
-    1 kHz tick, and the composed nodes ask for a short pause while they wait.
+    1 kHz tick. Our nodes no longer await anything that takes long (nf_controller sets up and runs
+    its RunEpisode goals on timers), so none asks for a pause today.
 
     With ``work``, the executor spins in a background thread and ``work(node, stop)`` runs in the
     main thread; its return value is the exit code, and ``stop`` is set on a signal. If the node
