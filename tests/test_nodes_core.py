@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import pytest
 
@@ -118,6 +119,39 @@ def test_bridge_realtime_timeout_enters_safe_hold_that_holds_the_arm(free_env):
     assert _drift_deg(bridge, 300, command=zero) > 3.0, "without it the arm falls (the check is not vacuous)"
 
 
+def _coast(bridge: SimBridge, seconds: float = 1.5) -> tuple[float, float]:
+    """From a moving arm (0.6 rad/s on joints 1, 2 and 4) with no command at all: the largest and the
+    final joint distance (rad) from where the hold began."""
+    env = bridge.env
+    env.data.qvel[:7] = [0.6, 0.6, 0.0, 0.6, 0.0, 0.0, 0.0]
+    mujoco.mj_forward(env.model, env.data)
+    q0, far = env.q.copy(), 0.0
+    for k in range(round(seconds / bridge.dt)):
+        assert bridge.step_realtime(10.0 + k * bridge.dt)
+        far = max(far, float(np.abs(env.q - q0).max()))
+    return far, float(np.abs(env.q - q0).max())
+
+
+def test_bridge_safe_hold_with_stiffness_brakes_where_it_began(free_env):
+    """The driver-side hold with a joint spring stops the arm where its commands stopped, as a robot
+    brakes; damping alone lets it coast (hold_stiffness 0, the default)."""
+    coast_far, _ = _coast(_bridge(free_env, mode="realtime", hold_damping=2.0))
+    brake_far, brake_end = _coast(_bridge(free_env, mode="realtime", hold_damping=15.0, hold_stiffness=100.0))
+    print(f"0.6 rad/s into the hold: damping 2 coasts {coast_far:.3f} rad; spring 100 + damping 15 stops "
+          f"within {brake_far:.3f} rad and ends {brake_end:.4f} rad from where it began")
+    assert coast_far > 0.2  # measured 0.27 rad
+    assert brake_far < 0.1 and brake_end < 0.02  # measured 0.025 rad and 0.0005 rad
+    bridge = _bridge(free_env, mode="realtime", command_timeout=0.05, hold_stiffness=100.0, hold_damping=15.0)
+    bridge.accept_command(bridge.gravity(), now=0.0)
+    assert not bridge.step_realtime(0.01)
+    bridge.env.data.qpos[0] += 0.05  # the arm was elsewhere when commands stopped: the anchor is there
+    mujoco.mj_forward(bridge.env.model, bridge.env.data)
+    q_stop = bridge.env.q.copy()
+    for k in range(500):
+        bridge.step_realtime(1.0 + k * 0.001)
+    assert float(np.abs(bridge.env.q - q_stop).max()) < 0.02
+
+
 def test_bridge_driver_gravity_compensation(free_env):
     bridge = _bridge(free_env, mode="lockstep", driver_gravity_compensation=True)
     assert _drift_deg(bridge, 500, command=np.zeros(7)) < 0.01
@@ -142,6 +176,7 @@ def test_bridge_reset_keeps_the_clock_running_and_refuses_bad_starts(free_env):
 
 
 @pytest.mark.parametrize("kw", [{"mode": "fast"}, {"command_timeout": 0.0}, {"hold_damping": -1.0},
+                                {"hold_stiffness": -1.0}, {"hold_stiffness": float("nan")},
                                 {"command_timeout": float("nan")}])
 def test_bridge_config_refuses_bad_values(kw):
     with pytest.raises(ValueError, match=next(iter(kw))):

@@ -7,7 +7,8 @@ without a ROS graph. Two ways to drive it:
 - lockstep: ``accept_command`` then ``step_commanded`` (one physics step per accepted command);
 - realtime: ``accept_command`` whenever a command arrives, ``step_realtime(now)`` every tick,
   which applies the last command until it is older than ``command_timeout`` and the safe hold
-  (the simulator's gravity torque + joint damping) after that.
+  (the simulator's gravity torque + joint damping + a ``hold_stiffness`` spring to where the hold
+  began, as a robot brakes where its commands stopped) after that.
 
 A bad command costs less than a good one: it is counted and its reason kept (bounded to
 ``ERROR_TEXT_MAX``); the node logs ``take_error_report()`` from its diagnostics timer, never per
@@ -37,6 +38,7 @@ class BridgeConfig:
     command_timeout: float = 0.05  # s of wall time without a command before the safe hold (realtime)
     driver_gravity_compensation: bool = False  # add the simulator's gravity torque to every command (Franka)
     hold_damping: float = 2.0  # Nm s/rad (N s/m for the block), joint damping of the safe hold
+    hold_stiffness: float = 0.0  # Nm/rad (N/m), safe hold's spring to where it began (0: damping only)
 
     def check(self) -> None:
         """Raise ``ValueError`` with the reason if a value is out of range."""
@@ -46,6 +48,8 @@ class BridgeConfig:
             raise ValueError(f"command_timeout must be > 0 s, got {self.command_timeout}")
         if not np.isfinite(self.hold_damping) or self.hold_damping < 0.0:
             raise ValueError(f"hold_damping must be >= 0, got {self.hold_damping}")
+        if not np.isfinite(self.hold_stiffness) or self.hold_stiffness < 0.0:
+            raise ValueError(f"hold_stiffness must be >= 0, got {self.hold_stiffness}")
 
 
 class SimBridge:
@@ -62,6 +66,7 @@ class SimBridge:
         self._command = np.zeros(env.nu)  # last accepted command, without the driver's gravity
         self._has_command = False
         self._command_time = -np.inf  # wall time (s) of the last accepted command
+        self._hold_anchor: np.ndarray | None = None  # q where the current safe hold began
         self.torque = np.zeros(env.nu)  # torque applied in the last step (Nm), what `effort` reports
         self.clock_offset = 0.0  # sim time (s) of all earlier episodes: the clock never goes back
         self.steps = 0
@@ -106,8 +111,16 @@ class SimBridge:
         return self._rne[self._vadr].copy()
 
     def hold_torque(self) -> np.ndarray:
-        """Safe hold of the driver: gravity compensation + joint damping."""
-        return self.gravity() - self.config.hold_damping * self.env.dq
+        """Safe hold of the driver: gravity compensation + joint damping + a joint spring
+        (``hold_stiffness``) to the position where this hold began (its anchor)."""
+        cfg, env = self.config, self.env
+        tau = self.gravity() - cfg.hold_damping * env.dq
+        if cfg.hold_stiffness > 0.0:
+            q = env.q
+            if self._hold_anchor is None:
+                self._hold_anchor = q
+            tau -= cfg.hold_stiffness * (q - self._hold_anchor)
+        return tau
 
     # ------------------------------------------------------------------ commands
     def _checked(self, data: Sequence[float]) -> np.ndarray | tuple:
@@ -213,6 +226,7 @@ class SimBridge:
             self.hold_steps += 1
             self._apply(self.hold_torque())
         else:
+            self._hold_anchor = None  # the next hold anchors where it begins
             self._apply(self._commanded())
         self.in_hold = stale
         return stale
@@ -237,6 +251,7 @@ class SimBridge:
             raise
         self.clock_offset += elapsed + self.dt  # strictly later than any stamp already published
         self._has_command = False
+        self._hold_anchor = None  # a new world: a hold anchors at the reset state
         self.torque[:] = 0.0
         self.in_hold = True
         return obs

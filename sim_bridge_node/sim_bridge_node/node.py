@@ -60,6 +60,7 @@ PARAMETERS = {
     "driver_gravity_compensation": (False, "add the simulator's gravity torque to every command (like Franka)"),
     "command_timeout": (0.05, "realtime: s without a command before the safe hold"),
     "hold_damping": (2.0, "joint damping of the safe hold, Nm s/rad"),
+    "hold_stiffness": (0.0, "joint spring of the safe hold to where it began, Nm/rad (0: damping only)"),
     "seed": (-1, "start of the first episode: < 0 fixed start, else a sampled start"),
     "lockstep_resend": (0.1, "lockstep: s of wall time before an unanswered state is published again"),
     "task_status_rate": (50.0, "task_status messages per s of simulated time (0: off)"),
@@ -108,7 +109,7 @@ class SimBridgeNode(Node):
         _check(p)
         config = BridgeConfig(mode=p["mode"], command_timeout=p["command_timeout"],
                               driver_gravity_compensation=p["driver_gravity_compensation"],
-                              hold_damping=p["hold_damping"])
+                              hold_damping=p["hold_damping"], hold_stiffness=p["hold_stiffness"])
         config.check()
         self.params = p
         self.bridge = SimBridge(InsertionEnv(p["task"], plane=p["block_plane"]), config)
