@@ -163,7 +163,7 @@ class _Setup:
     policy_deadline: float  # monotonic s
     run: EpisodeRun | None = None
     reset: Any = None  # composed: the driver's concurrent future; standalone: the reset service call
-    reset_deadline: float = math.inf  # monotonic s
+    reset_deadline: float = math.inf  # monotonic s: of the reset (composed) or of the service's appearance
 
 
 class NFControllerNode(Node):
@@ -333,12 +333,7 @@ class NFControllerNode(Node):
                 self._stop_setup()
                 self._finish(RunEpisode.Result(completed=False, message=problem))
             return
-
-        def end() -> None:
-            if self.loop.episode is run:
-                self.host.end_episode(problem)
-
-        self._on_driver_thread(end)
+        self._stop_run(run, problem)
         if not self.composed:
             self._drain()
         self._episode_ended(problem)
