@@ -87,6 +87,8 @@ class JointMap:
         self._bad_names: list[str] | None = None  # the last list that failed, and why
         self._bad_text = ""
         self._index = np.arange(len(self.joint_names))
+        self._identity = True  # the last good name list is the controller's order: no reindexing
+        self._same: tuple[str, ...] | None = None  # a tuple already mapped (immutable: no recheck)
 
     def _build(self, names: list[str]) -> np.ndarray:
         expected = list(self.joint_names)
@@ -105,10 +107,16 @@ class JointMap:
 
     def map(self, names: Sequence[str], position: Sequence[float], velocity: Sequence[float]
             ) -> tuple[np.ndarray, np.ndarray]:
-        """(q, dq) in controller order; ``JointStateError`` for unknown/missing names or wrong sizes."""
+        """(q, dq) in controller order; ``JointStateError`` for unknown/missing names or wrong sizes.
+        A driver that hosts the controller passes the same name tuple every tick: it is checked once."""
+        if names is self._same and len(position) == len(names) and len(velocity) == len(names):
+            if self._identity:
+                return np.asarray(position, dtype=np.float64), np.asarray(velocity, dtype=np.float64)
+            return (np.asarray(position, dtype=np.float64)[self._index],
+                    np.asarray(velocity, dtype=np.float64)[self._index])
         if len(names) > 4 * len(self.joint_names):
             self._build(names)  # raises, without copying the list
-        names = list(names)
+        names_in, names = names, list(names)
         if names != self._names:
             if names == self._bad_names:  # the same bad list again (a flood): no rebuild, no new text
                 raise JointStateError(self._bad_text)
@@ -118,11 +126,13 @@ class JointMap:
                 self._bad_names, self._bad_text = names, str(exc)
                 raise
             self._names = names
+            self._identity = bool(np.array_equal(self._index, np.arange(len(self.joint_names))))
         n = len(names)
         if len(position) != n or len(velocity) != n:
             raise JointStateError(f"{n} names but {len(position)} positions and {len(velocity)} velocities")
         q = np.asarray(position, dtype=np.float64)[self._index]
         dq = np.asarray(velocity, dtype=np.float64)[self._index]
+        self._same = names_in if isinstance(names_in, tuple) else None
         return q, dq
 
 
@@ -495,7 +505,7 @@ class ControlLoop:
             if run.steps % run.P == 0 and run.steps < run.K * run.P:
                 u_mean = ctrl.evaluator.force(arm.x, ctrl.xdot, self._u_mean)
             diff = tau - arm.g
-            run.record(arm.x, ctrl.xdot, u_mean, self.depth, float(np.sqrt(diff @ diff)))
+            run.record(arm.x, ctrl.xdot, u_mean, self.depth, math.sqrt(float(diff @ diff)))
             self._episode_last = stamp_ns
         return tau
 

@@ -118,12 +118,15 @@ class EpisodeRun:
         K = self.K
         self.x, self.xdot, self.u_mean = np.zeros((K, d)), np.zeros((K, d)), np.zeros((K, d))
         self.eps = np.zeros((K, d))
-        self.reward = np.zeros(K)
-        self.terms = {n: np.zeros(K) for n in REWARD_TERMS}
+        self._reward = np.zeros(K)
+        self._terms = {n: np.zeros(K) for n in REWARD_TERMS}
+        self._x_end, self._xdot_end = np.zeros((K, d)), np.zeros((K, d))  # state closing each decision
+        self._scored = 0  # decisions whose reward is computed (in batches, off the per-state path)
         self.depth = np.full(K, np.nan)
         self.steps = 0  # states consumed
         self.closed = 0  # decisions whose reward is known
         self.chunks_sent = 0
+        self.next_chunk_closes = min(spec.chunk_decisions, self.K)  # ``closed`` at which a chunk is ready
         self.torque_sum = 0.0
         self._rng = np.random.default_rng(spec.noise_seed) if spec.sigma is not None else None
         self._zero = np.zeros(d)
@@ -165,13 +168,35 @@ class EpisodeRun:
         self.steps += 1
 
     def _close(self, k: int, x: np.ndarray, xdot: np.ndarray, depth: float) -> None:
-        action = self.u_mean[k] + self.eps[k]
-        terms = reward_terms(x - self.spec.x_goal, xdot, action, self.spec.weights)
-        for name in REWARD_TERMS:
-            self.terms[name][k] = terms[name]
-        self.reward[k] = sum(float(terms[n]) for n in REWARD_TERMS)
+        self._x_end[k], self._xdot_end[k] = x, xdot
         self.depth[k] = depth
         self.closed = k + 1
+
+    def _score(self) -> None:
+        """Rewards of the decisions closed since the last call, as the in-process rollout computes
+        them (one vectorized ``reward_terms``)."""
+        lo, hi = self._scored, self.closed
+        if hi <= lo:
+            return
+        s = slice(lo, hi)
+        terms = reward_terms(self._x_end[s] - self.spec.x_goal, self._xdot_end[s], self.u_mean[s] + self.eps[s],
+                             self.spec.weights)
+        for name in REWARD_TERMS:
+            self._terms[name][s] = terms[name]
+        self._reward[s] = np.sum([terms[n] for n in REWARD_TERMS], axis=0)
+        self._scored = hi
+
+    @property
+    def reward(self) -> np.ndarray:
+        """(K,) reward per decision (valid for the closed ones)."""
+        self._score()
+        return self._reward
+
+    @property
+    def terms(self) -> dict[str, np.ndarray]:
+        """REWARD_TERMS -> (K,) the reward's terms per decision (valid for the closed ones)."""
+        self._score()
+        return self._terms
 
     def ready_chunks(self) -> list[Chunk]:
         """Chunks whose decisions are all closed and not yet handed out (the last one is final)."""
@@ -186,10 +211,13 @@ class EpisodeRun:
             final = self.chunks_sent == n_total - 1
             out.append(self._chunk(self.chunks_sent, start, stop, final, n_total))
             self.chunks_sent += 1
+        # all handed out: never again (closed stops at K)
+        self.next_chunk_closes = min(self.chunks_sent * C + C, self.K) if self.chunks_sent < n_total else self.K + 1
         return out
 
     def _chunk(self, seq: int, start: int, stop: int, final: bool, n_total: int) -> Chunk:
         s = slice(start, stop)
+        reward, terms = self.reward, self.terms
         action = self.u_mean[s] + self.eps[s]
         if self.spec.sigma is None:
             log_prob = np.zeros(stop - start)
@@ -198,8 +226,8 @@ class EpisodeRun:
         return Chunk(seq=seq, final=final, n_chunks=n_total if final else 0,
                      t=np.arange(start, stop) * self.spec.decision_period, x=self.x[s].copy(),
                      xdot=self.xdot[s].copy(), u_mean=self.u_mean[s].copy(), action=action,
-                     log_prob=log_prob, reward=self.reward[s].copy(),
-                     terms=np.stack([self.terms[n][s] for n in REWARD_TERMS], axis=1), depth=self.depth[s].copy())
+                     log_prob=log_prob, reward=reward[s].copy(),
+                     terms=np.stack([terms[n][s] for n in REWARD_TERMS], axis=1), depth=self.depth[s].copy())
 
     @property
     def episode_return(self) -> float:

@@ -69,6 +69,7 @@ class ControllerHost:
     def __init__(self, loop: ControlLoop, joint_names: Sequence[str] | None = None) -> None:
         self.loop = loop
         self.joint_names = list(joint_names or loop.joints.joint_names)  # order of q, dq given to tick
+        self._names = tuple(self.joint_names)  # what tick passes on: an immutable list is mapped once
         self._inbox: deque[tuple[Callable[[], Any], Future]] = deque()
         self._outbox: deque[HostEvent] = deque()
         self._work = threading.Event()
@@ -157,7 +158,7 @@ class ControllerHost:
         """
         t0 = time.perf_counter()
         loop = self.loop
-        tau, new_fault = loop.on_joint_state(self.joint_names if names is None else names, q, dq, stamp_ns, now)
+        tau, new_fault = loop.on_joint_state(self._names if names is None else names, q, dq, stamp_ns, now)
         self.last_stamp_ns = stamp_ns
         missed = loop.record_latency(time.perf_counter() - t0)
         fault = new_fault or missed
@@ -165,8 +166,9 @@ class ControllerHost:
             self._outbox.append(HostEvent(FAULT, text=fault, stamp_ns=stamp_ns))
         run = loop.episode
         if run is not None and run.steps:
-            for chunk in run.ready_chunks():
-                self._outbox.append(HostEvent(CHUNK, run=run, chunk=chunk, stamp_ns=stamp_ns))
+            if run.closed >= run.next_chunk_closes:
+                for chunk in run.ready_chunks():
+                    self._outbox.append(HostEvent(CHUNK, run=run, chunk=chunk, stamp_ns=stamp_ns))
             if fault or loop.fault:
                 self.end_episode(f"aborted: safe hold ({fault or loop.fault})")
             elif run.done:

@@ -17,6 +17,7 @@ message.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -197,10 +198,27 @@ class SimBridge:
         return self._has_command
 
     def _apply(self, tau: np.ndarray) -> None:
-        self.torque[:] = tau
-        self.env.step(tau)  # clamps to the actuator limits; tau is finite here
+        self.env.step(tau)  # clamps to the actuator limits; raises (no step) if not finite
         self.torque[:] = self.env.last_torque
         self.steps += 1
+
+    def step_with(self, tau: np.ndarray) -> bool:
+        """Lockstep with a composed controller: one physics step with ``tau`` (Nm, handed over by a
+        direct call instead of a message), the command path without the copies. False, counted as a
+        bad command and no step, when it is not ``nu`` finite values."""
+        env = self.env
+        if tau.shape != (env.nu,) or not math.isfinite(float(tau @ tau)):
+            self.bad_commands += 1
+            self._error = ("finite", np.array(tau, dtype=np.float64)) if tau.shape == (env.nu,) else ("size", tau.size)
+            return False
+        if self.config.driver_gravity_compensation:
+            env.step(tau + self.gravity())  # checked: the gravity of a broken state is not finite
+        else:
+            env.step_finite(tau)
+        self.torque[:] = env.last_torque
+        self.steps += 1
+        self._has_command = False
+        return True
 
     def _commanded(self) -> np.ndarray:
         if self.config.driver_gravity_compensation:

@@ -76,7 +76,7 @@ class SimDriverLoop:
         depth = env.insertion_depth
         self.host.set_task(depth, env.task != "free" and depth >= self._success_depth)
 
-    def _step(self, now: float) -> None:
+    def _tick(self, stamp_ns: int, now: float) -> np.ndarray:
         bridge, host = self.bridge, self.host
         env = bridge.env
         # an episode records the depth at its decisions' first states (and ends on one); between
@@ -84,9 +84,7 @@ class SimDriverLoop:
         run = host.loop.episode
         if (run.steps % run.P == 0) if run is not None else bridge.steps % TASK_EVERY == 0:
             self._report_task()
-        tau = host.tick(bridge.stamp_ns, env.q, env.dq, now)
-        if bridge.accept_command(tau, now) != ACCEPTED:
-            self.bad_torques += 1
+        return host.tick(stamp_ns, env.q, env.dq, now)
 
     def _run_lockstep(self, stop: threading.Event) -> None:
         bridge, host = self.bridge, self.host
@@ -94,11 +92,12 @@ class SimDriverLoop:
         due = time.perf_counter()
         while not stop.is_set():
             host.service()
-            if not host.wants_tick(bridge.stamp_ns):
+            stamp_ns = bridge.stamp_ns
+            if not host.wants_tick(stamp_ns):
                 host.wait_for_work(_WAIT_IDLE)
                 continue
-            self._step(time.monotonic())
-            bridge.step_commanded()
+            if not bridge.step_with(self._tick(stamp_ns, time.monotonic())):
+                self.bad_torques += 1
             self.after_step()
             if host.loop.episode is not None:
                 due = time.perf_counter()  # episodes: as fast as the physics allows
@@ -119,8 +118,11 @@ class SimDriverLoop:
         while not stop.is_set():
             host.service()
             started = time.perf_counter()
-            if host.wants_tick(bridge.stamp_ns):
-                self._step(time.monotonic())
+            stamp_ns = bridge.stamp_ns
+            if host.wants_tick(stamp_ns):
+                now = time.monotonic()
+                if bridge.accept_command(self._tick(stamp_ns, now), now) != ACCEPTED:
+                    self.bad_torques += 1
             written = time.perf_counter()
             bridge.step_realtime(time.monotonic())
             timing.tick(started, written - started, late=started - due > LATE_AFTER)

@@ -160,7 +160,7 @@ class InsertionEnv:
             raise ValueError(f"{what} must be a numeric array of {size} values: {exc}") from None
         if arr.shape != (size,):
             raise ValueError(f"{what} must have shape ({size},), got shape {arr.shape}")
-        if not np.all(np.isfinite(arr)):
+        if not np.isfinite(arr).all():
             bad = np.flatnonzero(~np.isfinite(arr)).tolist()
             raise ValueError(f"{what} contains NaN or Inf at index {bad}: {arr.tolist()}")
         return arr
@@ -169,10 +169,12 @@ class InsertionEnv:
         """Advance 1 ms with torques ``tau`` (clamped to the limits). Raises ``ValueError`` on
         NaN/Inf or a wrong size, leaving the state untouched."""
         arr = self._checked_vector(tau, self.model.nu, "torque command")
-        self._step_unchecked(arr)
+        self.step_finite(arr)
 
-    def _step_unchecked(self, tau: np.ndarray) -> None:
-        np.clip(tau, self._ctrl_lo, self._ctrl_hi, out=self.last_torque)
+    def step_finite(self, tau: np.ndarray) -> None:
+        """``step`` for torques the caller has already checked: a float array of ``nu`` finite values."""
+        # np.clip's result, at a third of its cost on 7 values
+        np.minimum(np.maximum(tau, self._ctrl_lo, out=self.last_torque), self._ctrl_hi, out=self.last_torque)
         self._step_clamped()
 
     def _step_clamped(self) -> None:
