@@ -316,8 +316,11 @@ def test_offline_ppo_update_from_a_bag_equals_the_learner_iteration(tmp_path):
     try:
         # the rollouts topic exists once the controller is up; the policy topic once the learner is
         wait_recording(rec, probe, ["/rollouts"], 30)
+        # the recorder subscribes to the policy once it sees the learner's publisher: the learner waits
+        # for it (and the controller) or a short run can end before the bag holds its policy
         args = ["-m", "learner_node.node", "--ros-args", "--params-file", config,
-                "-p", f"learner_node:out_dir:={run}", "-p", "learner_node:iterations:=1"]
+                "-p", f"learner_node:out_dir:={run}", "-p", "learner_node:iterations:=1",
+                "-p", "learner_node:policy_subscribers:=2"]
         for key, value in settings.items():
             args += ["-p", f"learner_node:{key}:={value}" if key != "episode_seconds" else f"{key}:={value}"]
         learner = RosProcess(args, domain, tmp_path / "learner.log")
