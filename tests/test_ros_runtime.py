@@ -1,6 +1,7 @@
 """``ros_runtime.run_node``: a node's ``spin_pause`` bounds how often the executor resumes a coroutine
 that waits (rclpy 7.1 resumes it again at once, so without a pause the executor thread spins and,
-in a composed process, takes the GIL from the driver's tick). Real rclpy, own ROS_DOMAIN_ID."""
+in a composed process, takes the GIL from the driver's tick); a ``SpinLock`` caller gets in between
+spin slices. Real rclpy, own ROS_DOMAIN_ID."""
 
 from __future__ import annotations
 
@@ -8,9 +9,11 @@ import threading
 import time
 
 import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-from nf_controller_node.ros_runtime import run_node
+from nf_controller_node.ros_runtime import SpinLock, run_node
 
 from ros_testing import allocate_domain_id
 
@@ -72,3 +75,42 @@ def test_spin_pause_bounds_how_often_a_waiting_coroutine_is_resumed(domain):
     assert polite <= WAIT / PAUSE + 50, f"{polite} resumes in {WAIT} s with a {PAUSE * 1e3:.0f} ms pause"
     busy = _resumes(0.0)  # what rclpy does by itself: the reason for spin_pause
     assert busy > 5 * polite, f"without a pause only {busy} resumes (with: {polite})"
+
+
+def test_a_spin_lock_caller_gets_in_without_waiting_out_the_slice(domain):
+    """The executor thread holds the lock through each spin_once (here 1 s slices of an idle node,
+    so a plain lock would keep a caller waiting up to a second, or longer: the loop takes it straight
+    back); the caller wakes the executor and is let in before the next slice."""
+    rclpy.init()
+    executor = SingleThreadedExecutor()
+    node = Node("spin_lock_test")
+    executor.add_node(node)
+    lock = SpinLock()
+    lock.wake = executor.wake
+    stop = threading.Event()
+    slices = []
+
+    def spin() -> None:
+        while not stop.is_set():
+            with lock.spin_slice():
+                executor.spin_once(timeout_sec=1.0)
+            slices.append(time.monotonic())
+
+    spinner = threading.Thread(target=spin, daemon=True)
+    spinner.start()
+    try:
+        time.sleep(0.2)  # the spinner is inside a slice
+        t0 = time.monotonic()
+        for _ in range(20):
+            with lock:
+                pass
+        waited = time.monotonic() - t0
+    finally:
+        stop.set()
+        executor.wake()
+        spinner.join(5.0)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    assert waited < 1.0, f"20 turns took {waited:.2f} s with 1 s spin slices"
+    assert slices, "the executor thread never finished a slice"

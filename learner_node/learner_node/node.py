@@ -33,7 +33,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 
 from nf_controller_node.policy_params import PolicyParameters
-from nf_controller_node.ros_runtime import run_node
+from nf_controller_node.ros_runtime import SpinLock, run_node
 from nf_controller_node.topics import CONTROLLER_STATUS, POLICY_PARAMETERS, ROLLOUTS, RUN_EPISODE
 
 from .config import TrainConfig
@@ -97,7 +97,7 @@ class LearnerNode(Node):
         self.create_subscription(RolloutChunk, ROLLOUTS, self.chunks.add, CHUNK_QOS)
         self._action = ActionClient(self, RunEpisode, RUN_EPISODE)
         self.success_depth = 0.016  # m; set from the trainer's scene by RosTraining
-        self.spin_lock = threading.Lock()  # held by each executor spin slice (ros_runtime.run_node)
+        self.spin_lock = SpinLock()  # held by each executor spin slice (ros_runtime.run_node)
 
     def publish_policy(self, trainer: Trainer) -> int:
         """Publish the trainer's policy (its mean, with parameter exploration) under the version of the
