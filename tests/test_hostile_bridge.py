@@ -61,3 +61,21 @@ def test_check_command_still_raises_with_the_reason(free_env):
         bridge.check_command([np.nan] * 7)
     assert bridge.bad_commands == 0 and bridge.last_error == "", "a direct check is not a rejected command"
     np.testing.assert_array_equal(bridge.check_command(range(7)), np.arange(7.0))
+
+
+@pytest.mark.parametrize("gravity", [False, True])
+def test_a_composed_controllers_bad_torque_never_steps_the_world(free_env, gravity):
+    """``step_with`` (the composed lockstep's direct hand-over) checks what the command path checks:
+    a NaN, an Inf or a wrong size is counted with its reason and the world does not move."""
+    bridge = _bridge(free_env, mode="lockstep", driver_gravity_compensation=gravity)
+    qpos, steps = free_env.data.qpos.copy(), bridge.steps
+    for tau, reason in ((np.array([0.0] * 6 + [np.nan]), "NaN/Inf for ['panda_joint7']"),
+                        (np.full(7, np.inf), "NaN/Inf for"), (np.zeros(9), "command has 9 values")):
+        assert not bridge.step_with(tau)
+        assert reason in bridge.last_error
+    assert bridge.bad_commands == 3 and bridge.steps == steps
+    np.testing.assert_array_equal(free_env.data.qpos, qpos)
+    big = np.full(7, 1e6)  # finite: clamped to the actuator limits and applied
+    assert bridge.step_with(big) and bridge.steps == steps + 1
+    np.testing.assert_array_equal(bridge.torque, free_env.last_torque)
+    assert np.all(bridge.torque <= free_env.model.actuator_ctrlrange[:, 1])

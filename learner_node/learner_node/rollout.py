@@ -29,6 +29,7 @@ from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
 from nf_controller_node.reward import REWARD_TERMS, RewardWeights, gaussian_log_prob, reward_terms
+from nf_controller_node.torque_law import excess_norm
 from sim_bridge_node.env import InsertionEnv
 
 from .config import TrainConfig
@@ -159,8 +160,7 @@ class RolloutRunner:
                 x_out[:] = arm.x
                 xdot_out[:] = ctrl.xdot
                 ev.force(arm.x, ctrl.xdot, u_out)
-            diff = tau - arm.g
-            total += math.sqrt(float(diff @ diff))
+            total += excess_norm(tau, arm.g)
             env.step(tau)
         return total, fault
 

@@ -44,7 +44,7 @@ from .panda_spec import (
     Q_PLAUSIBLE_MIN,
 )
 from .policy_params import POLICY_LIMITS, PolicyLimits, PolicyParameterError, PolicyParameters
-from .torque_law import TorqueLawConfig
+from .torque_law import TorqueLawConfig, excess_norm
 
 # ControllerStatus modes (same numbers as nf_msgs/msg/ControllerStatus).
 MODE_IDLE, MODE_RUNNING, MODE_SAFE_HOLD, MODE_RESETTING = 0, 1, 2, 3
@@ -504,8 +504,7 @@ class ControlLoop:
             u_mean = None
             if run.steps % run.P == 0 and run.steps < run.K * run.P:
                 u_mean = ctrl.evaluator.force(arm.x, ctrl.xdot, self._u_mean)
-            diff = tau - arm.g
-            run.record(arm.x, ctrl.xdot, u_mean, self.depth, math.sqrt(float(diff @ diff)))
+            run.record(arm.x, ctrl.xdot, u_mean, self.depth, excess_norm(tau, arm.g))
             self._episode_last = stamp_ns
         return tau
 

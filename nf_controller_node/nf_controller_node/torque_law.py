@@ -79,6 +79,16 @@ class TorqueLawConfig:
 
 
 @njit(cache=True)
+def excess_norm(tau: np.ndarray, g: np.ndarray) -> float:
+    """|tau - g| (Nm): the torque beyond gravity compensation, the episodes' effort measure."""
+    acc = 0.0
+    for i in range(tau.shape[0]):
+        d = tau[i] - g[i]
+        acc += d * d
+    return np.sqrt(acc)
+
+
+@njit(cache=True)
 def orientation_error(R: np.ndarray, R_ref: np.ndarray, out: np.ndarray) -> None:
     """out = 1/2 sum_i r_i x r_ref_i: the axis-angle-like error (world frame) that turns R toward R_ref."""
     out[:] = 0.0

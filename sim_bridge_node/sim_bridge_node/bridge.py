@@ -17,7 +17,6 @@ message.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -207,14 +206,17 @@ class SimBridge:
         direct call instead of a message), the command path without the copies. False, counted as a
         bad command and no step, when it is not ``nu`` finite values."""
         env = self.env
-        if tau.shape != (env.nu,) or not math.isfinite(float(tau @ tau)):
-            self.bad_commands += 1
-            self._error = ("finite", np.array(tau, dtype=np.float64)) if tau.shape == (env.nu,) else ("size", tau.size)
-            return False
-        if self.config.driver_gravity_compensation:
-            env.step(tau + self.gravity())  # checked: the gravity of a broken state is not finite
+        if tau.shape != (env.nu,):
+            ok, self._error = False, ("size", tau.size)
+        elif self.config.driver_gravity_compensation:
+            ok = env.step_if_finite(tau + self.gravity())  # the gravity of a broken state is not finite
         else:
-            env.step_finite(tau)
+            ok = env.step_if_finite(tau)
+        if not ok:
+            self.bad_commands += 1
+            if tau.shape == (env.nu,):
+                self._error = ("finite", np.array(tau, dtype=np.float64))
+            return False
         self.torque[:] = env.last_torque
         self.steps += 1
         self._has_command = False
