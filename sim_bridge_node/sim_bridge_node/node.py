@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import array
 import json
+import math
 import os
 import threading
 import time
@@ -126,6 +127,8 @@ class SimBridgeNode(Node):
         self._state_pub = self.create_publisher(JointState, topics.JOINT_STATES, PUBLISH_QOS)
         self._clock_pub = self.create_publisher(Clock, topics.CLOCK, PUBLISH_QOS) if self.lockstep else None
         self._task_pub = self.create_publisher(TaskStatus, topics.TASK_STATUS, PUBLISH_QOS)
+        self._task_msg = TaskStatus(task=self.bridge.env.task)
+        self._task_msg.header.frame_id = "world"
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
         self.create_service(ResetSim, "~/reset", self._on_reset)
         self.driver: SimDriverLoop | None = None
@@ -259,11 +262,13 @@ class SimBridgeNode(Node):
         self._last_publish = time.monotonic()
 
     def _publish_task_status(self) -> None:
-        env = self.bridge.env
-        msg = TaskStatus(task=env.task, insertion_depth=env.insertion_depth, success=env.success,
-                         contact_force=float(np.linalg.norm(env.contact_force)))
+        env, msg = self.bridge.env, self._task_msg  # one message, refilled: this runs on the driver thread
+        depth = env.insertion_depth
+        msg.insertion_depth = depth
+        msg.success = env.task != "free" and depth >= env.scene.success_depth  # env.success, depth computed once
+        force = env.contact_force
+        msg.contact_force = math.sqrt(float(force @ force))
         msg.header.stamp = _stamp(self.bridge.stamp_ns)
-        msg.header.frame_id = "world"
         msg.part_position = env.x.tolist()
         self._task_pub.publish(msg)
 
