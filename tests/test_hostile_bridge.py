@@ -79,3 +79,16 @@ def test_a_composed_controllers_bad_torque_never_steps_the_world(free_env, gravi
     assert bridge.step_with(big) and bridge.steps == steps + 1
     np.testing.assert_array_equal(bridge.torque, free_env.last_torque)
     assert np.all(bridge.torque <= free_env.model.actuator_ctrlrange[:, 1])
+
+
+def test_a_composed_realtime_torque_is_checked_like_a_command(free_env):
+    """``accept_torque`` (composed realtime) keeps a finite torque for the next ticks and refuses a
+    NaN or a wrong size as ``accept_command`` does, keeping the last good one."""
+    bridge = _bridge(free_env, mode="realtime")
+    good = np.linspace(-1.0, 1.0, 7)
+    assert bridge.accept_torque(good, 0.0) == ACCEPTED
+    assert bridge.accept_torque(np.array([np.nan] * 7), 0.001) == BAD and "NaN/Inf" in bridge.last_error
+    assert bridge.accept_torque(np.zeros(3), 0.002) == BAD and "3 values" in bridge.last_error
+    assert bridge.bad_commands == 2
+    assert not bridge.step_realtime(0.003)  # the good torque, not the safe hold
+    np.testing.assert_allclose(bridge.torque, np.clip(good, *free_env.model.actuator_ctrlrange.T))

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from sim_bridge_node.env import InsertionEnv, Observation
+from sim_bridge_node.env import InsertionEnv, Observation, copy_if_finite
 
 MODES = ("lockstep", "realtime")
 ACCEPTED, STALE, BAD = "accepted", "stale", "bad"  # outcomes of accept_command
@@ -187,6 +187,15 @@ class SimBridge:
             self.stale_commands += 1
             return STALE
         self._command[:] = arr
+        self._has_command = True
+        self._command_time = now
+        return ACCEPTED
+
+    def accept_torque(self, tau: np.ndarray, now: float) -> str:
+        """``accept_command`` for a composed controller's torque (a float array handed over by a
+        direct call, not a message): the same checks in one compiled pass."""
+        if tau.shape != (self.env.nu,) or not copy_if_finite(tau, self._command):
+            return self.accept_command(tau, now)  # counted, with its reason
         self._has_command = True
         self._command_time = now
         return ACCEPTED

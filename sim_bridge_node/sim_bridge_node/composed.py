@@ -121,7 +121,7 @@ class SimDriverLoop:
             stamp_ns = bridge.stamp_ns
             if host.wants_tick(stamp_ns):
                 now = time.monotonic()
-                if bridge.accept_command(self._tick(stamp_ns, now), now) != ACCEPTED:
+                if bridge.accept_torque(self._tick(stamp_ns, now), now) != ACCEPTED:
                     self.bad_torques += 1
             written = time.perf_counter()
             bridge.step_realtime(time.monotonic())

@@ -44,6 +44,17 @@ def _clamp_finite(tau: np.ndarray, lo: np.ndarray, hi: np.ndarray, out: np.ndarr
     return True
 
 
+@njit(cache=True)
+def copy_if_finite(values: np.ndarray, out: np.ndarray) -> bool:
+    """out[:] = values if every value is finite (True); else False and out untouched."""
+    for i in range(values.shape[0]):
+        if not np.isfinite(values[i]):
+            return False
+    for i in range(values.shape[0]):
+        out[i] = values[i]
+    return True
+
+
 class InsertionEnv:
     """One simulated world: the Panda holding a gear or peg (or the 2-D block) and its fixture.
 
