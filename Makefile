@@ -29,7 +29,7 @@ bench-deps: setup
 	    || echo "[bench] warning: stable-baselines3 not installed; its comparison will be skipped"; \
 	fi
 
-run: setup  ## the whole stack learning the gear from a failing prior in simulation (composed, lockstep, 30 iterations, ~6 min); ARGS="--iterations 10" etc.
+run: setup  ## the whole stack learning the gear from a failing prior in simulation (composed, lockstep, 30 iterations, ~5 min); ARGS="--iterations 10" etc.
 	@$(ENV) && python -m nf_bringup.stack --config config/gear_learn.yaml $(ARGS)
 
 clean:  ## remove build products (keeps .venv)

@@ -29,7 +29,7 @@ import yaml
 from .processes import ManagedProcess, ros_environment
 from .run_summary import final_video, plot_curves, write_summary
 
-DEFAULT_ITERATIONS = 30  # ~11 s each over ROS here with the recorder (composed): 6.3 min in all (README)
+DEFAULT_ITERATIONS = 30  # 6-10 s each over ROS here with the recorder (composed): 4.5 min in all (README)
 # The learner starts only once the recorder subscribes to these (its "recording <topic> (" line):
 # the controller's first episode follows the learner's first policy at once, and a recorder still
 # discovering topics would miss it (a 0.5 s episode's single rollout chunk was lost that way in CI).
