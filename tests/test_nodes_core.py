@@ -236,6 +236,28 @@ def test_joint_map_reorders_by_name_and_rejects_bad_names():
         jm.map(NAMES, np.zeros(6), np.zeros(7))
 
 
+def test_joint_map_checks_a_drivers_name_tuple_once_and_still_maps_by_name():
+    """A hosting driver passes the same tuple every tick (checked once, then reused); another order,
+    a list in between or a size mismatch still gets the full check."""
+    jm = JointMap()
+    order = [3, 0, 6, 1, 5, 2, 4]
+    shuffled = tuple(NAMES[i] for i in order)
+    for _ in range(2):  # the second call takes the cached path
+        q, dq = jm.map(shuffled, Q0[order], np.arange(7.0)[order])
+        np.testing.assert_array_equal(q, Q0)
+        np.testing.assert_array_equal(dq, np.arange(7.0))
+    q, _ = jm.map(list(NAMES), Q0, np.zeros(7))  # a topic's list in between: identity order
+    np.testing.assert_array_equal(q, Q0)
+    q, _ = jm.map(shuffled, Q0[order], np.zeros(7))  # the tuple again: re-checked, still reordered
+    np.testing.assert_array_equal(q, Q0)
+    with pytest.raises(JointStateError, match="7 names but 6 positions"):
+        jm.map(shuffled, np.zeros(6), np.zeros(7))
+    same = tuple(NAMES)
+    jm.map(same, Q0, np.zeros(7))
+    q, _ = jm.map(same, Q0 + 0.1, np.zeros(7))
+    np.testing.assert_array_equal(q, Q0 + 0.1)
+
+
 def test_loop_holds_until_a_policy_arrives(arm):
     loop = _loop(arm, policy=False)
     feed = _Feed(loop)
