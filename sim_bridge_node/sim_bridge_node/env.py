@@ -176,14 +176,14 @@ class InsertionEnv:
         mujoco.mj_forward(self.model, self.data)
 
     @staticmethod
-    def _checked_vector(value: np.ndarray, size: int, what: str) -> np.ndarray:
+    def _checked_vector(value: np.ndarray, size: int, what: str, finite: bool = True) -> np.ndarray:
         try:
             arr = np.asarray(value, dtype=float)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{what} must be a numeric array of {size} values: {exc}") from None
         if arr.shape != (size,):
             raise ValueError(f"{what} must have shape ({size},), got shape {arr.shape}")
-        if not np.isfinite(arr).all():
+        if finite and not np.isfinite(arr).all():
             bad = np.flatnonzero(~np.isfinite(arr)).tolist()
             raise ValueError(f"{what} contains NaN or Inf at index {bad}: {arr.tolist()}")
         return arr
@@ -191,13 +191,9 @@ class InsertionEnv:
     def step(self, tau: np.ndarray) -> None:
         """Advance 1 ms with torques ``tau`` (clamped to the limits). Raises ``ValueError`` on
         NaN/Inf or a wrong size, leaving the state untouched."""
-        arr = self._checked_vector(tau, self.model.nu, "torque command")
-        self.step_finite(arr)
-
-    def step_finite(self, tau: np.ndarray) -> None:
-        """``step`` for torques the caller has already checked: a float array of ``nu`` finite values."""
-        _clamp_finite(tau, self._ctrl_lo, self._ctrl_hi, self.last_torque)
-        self._step_clamped()
+        arr = self._checked_vector(tau, self.model.nu, "torque command", finite=False)
+        if not self.step_if_finite(arr):  # the compiled pass checks finiteness once
+            self._checked_vector(arr, self.model.nu, "torque command")  # raises, naming the bad entries
 
     def step_if_finite(self, tau: np.ndarray) -> bool:
         """``step`` for a float array of ``nu`` torques, checked and clamped in one compiled pass:
