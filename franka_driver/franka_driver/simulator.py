@@ -5,7 +5,9 @@ started and stopped by its PID: the robot of the tests and of ``bench/bench_fran
         ...
 
 ``FrankySim(log, frictionless=True)`` runs ``python -m franka_driver.franky_launch --frictionless``
-instead: the same simulator with the arm joints' Coulomb friction removed (``franky_launch``).
+instead: the same simulator with the arm joints' Coulomb friction removed (``franky_launch``);
+``gear=True`` adds ``--gear`` (our gear task's shaft at the driver's default fixture position and
+the gear welded to the hand), ``gear_load=True`` also ``--gear-load``.
 """
 
 from __future__ import annotations
@@ -34,19 +36,26 @@ class FrankySim:
 
     ``frictionless``: ``python -m franka_driver.franky_launch --frictionless`` instead, franky-sim's
     simulator built the same way with the arm joints' ``frictionloss`` zeroed (for measuring the
-    controller's free-space error without the simulator's joint friction)."""
+    controller's free-space error without the simulator's joint friction). ``gear``: with
+    ``--gear`` (the gear task's shaft and gear, see ``franky_launch``); ``gear_load``: with
+    ``--gear-load`` too (the gear configured as the robot's end-effector load)."""
 
-    def __init__(self, log_path: Path, timeout: float = 60.0, frictionless: bool = False) -> None:
+    def __init__(self, log_path: Path, timeout: float = 60.0, frictionless: bool = False,
+                 gear: bool = False, gear_load: bool = False) -> None:
         if port_busy():
             raise RuntimeError(f"{HOST}:{PORT} is taken: another robot simulator runs on this machine")
+        if gear_load and not gear:
+            raise ValueError("gear_load needs gear")
         self.log_path = log_path
         self.frictionless = frictionless
+        self.gear = gear
         env = None
-        if frictionless:
+        flags = [f for f, on in (("--frictionless", frictionless), ("--gear", gear), ("--gear-load", gear_load)) if on]
+        if flags:
             # this package importable in the child whatever its PYTHONPATH
             here = str(Path(__file__).resolve().parent.parent)
             env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p))
-            cmd = [sys.executable, "-m", "franka_driver.franky_launch", "--frictionless"]
+            cmd = [sys.executable, "-m", "franka_driver.franky_launch", *flags]
         else:
             cmd = [str(Path(sys.executable).parent / "franky-sim"), "-s", "mujoco", "--hostname", HOST]
         self._log = open(log_path, "w")
