@@ -123,3 +123,50 @@ def test_episode_refused_without_policy_and_bad_specs():
         kwargs = {**spec.__dict__, **bad}
         with pytest.raises(ValueError):
             EpisodeRun(EpisodeSpec(**kwargs))
+
+
+def small_spec(sigma: np.ndarray | None = None, seed: int = 5) -> EpisodeSpec:
+    """3 decisions of 2 states, 2-D."""
+    return EpisodeSpec(episode_id=1, policy_version=1, duration=0.006, decision_period=0.002, control_period=0.001,
+                       sigma=sigma, noise_seed=seed, x_goal=np.zeros(2), chunk_decisions=2)
+
+
+def test_close_period_closes_a_decision_once_with_the_plants_state():
+    run = EpisodeRun(small_spec())
+    u = np.ones(2)
+    with pytest.raises(RuntimeError, match="no open decision period"):
+        run.close_period(np.zeros(2), np.zeros(2), 0.0)  # nothing recorded yet
+    run.record(np.full(2, 0.1), np.zeros(2), u, np.nan, 1.0)
+    with pytest.raises(RuntimeError, match="no open decision period"):
+        run.close_period(np.zeros(2), np.zeros(2), 0.0)  # mid-period
+    run.record(np.full(2, 0.2), np.zeros(2), None, np.nan, 1.0)
+    run.close_period(np.full(2, 0.3), np.zeros(2), 0.004)  # the plant's state, not the controller's
+    assert run.closed == 1 and run.depth[0] == 0.004
+    with pytest.raises(RuntimeError, match="no open decision period"):
+        run.close_period(np.zeros(2), np.zeros(2), 0.0)  # already closed
+    run.record(np.full(2, 0.9), np.zeros(2), u, 0.5, 1.0)  # the next decision's first state: no second close
+    assert run.closed == 1 and run.depth[0] == 0.004
+    w = RewardWeights()
+    d2 = 2 * 0.3**2  # from the closing state x = (0.3, 0.3), goal 0, at rest; action (1, 1)
+    assert run.reward[0] == pytest.approx(-w.w * d2 - w.v * np.log1p(d2 / w.a) - w.action * 2.0, rel=1e-12)
+    np.testing.assert_array_equal(run.x[1], [0.9, 0.9])
+    for _ in range(3):  # the rest of decision 1 and all of decision 2
+        run.record(np.zeros(2), np.zeros(2), u, np.nan, 1.0)
+    run.record(np.zeros(2), np.zeros(2), None, 0.02, 0.0)  # the state after the last period closes it
+    assert run.done and run.closed == 3 and run.depth[2] == 0.02
+    assert run.final_distance == 0.0 and run.mean_torque == 1.0
+    with pytest.raises(RuntimeError, match="no open decision period"):
+        run.close_period(np.zeros(2), np.zeros(2), 0.0)
+
+
+def test_a_given_generator_draws_the_noise_the_seed_would():
+    sigma = np.array([2.0, 0.5])
+    by_seed, by_rng = EpisodeRun(small_spec(sigma, seed=11)), EpisodeRun(small_spec(sigma, seed=0),
+                                                                          rng=np.random.default_rng(11))
+    for run in (by_seed, by_rng):
+        for _ in range(7):
+            run.noise()
+            run.record(np.zeros(2), np.zeros(2), np.zeros(2), 0.0, 0.0)
+    np.testing.assert_array_equal(by_seed.eps, by_rng.eps)
+    np.testing.assert_array_equal(by_seed.log_prob(), by_rng.log_prob())
+    assert np.all(by_seed.eps != 0.0)

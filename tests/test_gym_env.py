@@ -62,6 +62,8 @@ def test_decision_env_replays_the_rollout(task):
     env = DecisionEnv(cfg)
     assert env.horizon == cfg.decisions_per_episode == len(rec.reward)
     check_replay(rec, env.runner.x_ref, env.reset(START_SEED), env.step)
+    with pytest.raises(RuntimeError, match="call reset"):  # past the time limit: a clear error, no IndexError
+        env.step(rec.action[0])
     again = env.reset(START_SEED)  # a second episode in the same env starts the same
     np.testing.assert_array_equal(again, np.concatenate([rec.x[0] - env.runner.x_ref, rec.xdot[0]]))
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from learner_node.config import TrainConfig
-from learner_node.rollout import REWARD_TERMS, RewardWeights, RolloutRunner, reward_terms
+from learner_node.rollout import RolloutRunner
 from learner_node.train_cli import main as train_main
 from learner_node.trainer import (
     CHECKPOINT,
@@ -22,6 +22,7 @@ from learner_node.trainer import (
     metrics_without_timing,
     policy_sigma,
 )
+from nf_controller_node.reward import REWARD_TERMS, RewardWeights, reward_terms
 
 TINY = {"task": "block", "iterations": 2, "rollouts_per_iter": 3, "episode_seconds": 0.2, "minibatch_size": 16,
         "update_epochs": 2, "eval_episodes": 2}

@@ -11,10 +11,12 @@
 - observation: what the MLP policy sees, ``[x - x_ref, xdot]`` (controller frame), at the start of
   the next decision;
 - reward: the rollout's reward of the decision (``reward_terms`` of the state at the end of the
-  period and the action);
+  period and the action), from the same episode core (``EpisodeRun``) as the rollout;
 - episode: ``decisions_per_episode`` decisions (a time limit).
 
-Hence ``RolloutRunner.run_episode(ZeroForce(dim), sigma, start, rng)`` and this environment stepped
+The held action is the mean force of a deterministic episode (``HeldForce``): the controller adds
+it where the rollout adds its held noise, so ``RolloutRunner.run_episode(ZeroForce(dim), sigma,
+start, rng)`` and this environment stepped
 with that episode's actions from the same start produce the same states and rewards
 (tests/test_gym_env.py). ``gym_env.InsertionGymEnv`` wraps it as a ``gymnasium.Env``.
 """
@@ -26,7 +28,7 @@ import math
 import numpy as np
 
 from nf_controller_node.controller import FlowController
-from nf_controller_node.reward import REWARD_TERMS, RewardWeights, reward_terms
+from nf_controller_node.episode import EpisodeRun
 
 from .config import TrainConfig
 from .rollout import BLOCK_AXES, RolloutRunner
@@ -50,6 +52,21 @@ class ZeroForce:
         return math.nan
 
 
+class HeldForce(ZeroForce):
+    """A mean-force evaluator that returns ``value`` everywhere (the action held for a decision)."""
+
+    def __init__(self, dim: int) -> None:
+        super().__init__(dim)
+        self.value = np.zeros(dim)
+
+    def force(self, x: np.ndarray, xdot: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """u = ``value``, written to ``out`` if given."""
+        if out is None:
+            return self.value.copy()
+        out[:] = self.value
+        return out
+
+
 class DecisionEnv:
     """One simulated world of ``cfg``'s task, stepped one decision (held task-space force) at a time."""
 
@@ -58,12 +75,12 @@ class DecisionEnv:
         self.runner = RolloutRunner(cfg)
         self.dim = cfg.dim
         self.horizon = cfg.decisions_per_episode
-        self.zero = ZeroForce(self.dim)
-        self.weights = RewardWeights.from_config(cfg)
+        self.held = HeldForce(self.dim)
+        self.spec = self.runner.episode_spec(None)
         if self.runner.arm is not None:
-            self.runner.controller = FlowController(self.runner.arm, self.zero)
+            self.runner.controller = FlowController(self.runner.arm, self.held)
+        self.run = EpisodeRun(self.spec)
         self.decision = 0  # decisions taken in the current episode
-        self._u = np.zeros(self.dim)  # the zero mean force the period functions record
 
     def reset(self, start_seed: int | None) -> np.ndarray:
         """Start an episode as ``RolloutRunner.run_episode`` does with ``start_seed``; the first observation."""
@@ -72,6 +89,7 @@ class DecisionEnv:
         if runner.controller is not None:
             runner.controller.reset_rate_limit()
             runner.controller.clear_fault()
+        self.run = EpisodeRun(self.spec)
         self.decision = 0
         return self.observation()
 
@@ -90,20 +108,18 @@ class DecisionEnv:
 
         ``info``: insertion ``depth`` (m) and ``success`` at the end of the period, the mean torque
         norm beyond gravity of the period (``torque_norm``) and new controller ``faults``.
+        ``RuntimeError`` after the episode's last decision (call ``reset``).
         """
-        runner, env, d = self.runner, self.runner.env, self.dim
-        force = np.asarray(action, dtype=np.float64).reshape(d)
-        x0, xdot0 = np.empty(d), np.empty(d)
+        runner, env, run, k = self.runner, self.runner.env, self.run, self.decision
+        if k >= self.horizon:
+            raise RuntimeError(f"the episode ended after {self.horizon} decisions: call reset() first")
+        self.held.value[:] = np.asarray(action, dtype=np.float64).reshape(self.dim)
         period = runner._arm_period if runner.arm is not None else runner._block_period
         steps = self.cfg.steps_per_decision
-        torque, faults = period(self.zero, force, steps, x0, xdot0, self._u)
-        if runner.arm is None:
-            dist, vel = env.x[BLOCK_AXES] - runner.x_ref, env.xdot[BLOCK_AXES]
-        else:
-            dist, vel = env.x - runner.goal, env.xdot
-        terms = reward_terms(dist, vel, force, self.weights)
-        reward = float(sum(terms[name] for name in REWARD_TERMS))
+        torque, faults = period(self.held, run.noise(), steps, run)
+        x, xdot = runner.plant_state()
+        run.close_period(x, xdot, env.insertion_depth)
         self.decision += 1
         info = {"depth": float(env.insertion_depth), "success": bool(env.success),
                 "torque_norm": torque / steps, "faults": faults}
-        return self.observation(), reward, self.decision >= self.horizon, info
+        return self.observation(), float(run.reward[k]), self.decision >= self.horizon, info

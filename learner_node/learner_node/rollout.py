@@ -16,6 +16,10 @@ Reward of decision k (DESIGN section 2), from the state at the end of the period
     r = -w |d|^2 - v ln((|d|^2 + a) / a) - c_v |xdot|^2 - c_u |a_k|^2,   d = x - x_goal
 
 with every term reported separately (``reward_terms``); their sum is the reward.
+
+The noise, the per-decision record, the reward and the log-densities come from the controller's
+episode core (``nf_controller_node.episode.EpisodeRun``), the same object the controller runs over
+ROS; this module steps the simulated world and closes each decision with the simulator's state.
 """
 
 from __future__ import annotations
@@ -28,7 +32,8 @@ import numpy as np
 from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
-from nf_controller_node.reward import REWARD_TERMS, RewardWeights, gaussian_log_prob, reward_terms
+from nf_controller_node.episode import EpisodeRun, EpisodeSpec
+from nf_controller_node.reward import RewardWeights
 from nf_controller_node.torque_law import excess_norm
 from sim_bridge_node.env import InsertionEnv
 
@@ -81,6 +86,7 @@ class RolloutRunner:
         self.goal = self.env.goal_position
         self.arm: ArmModel | None = None
         self.controller: FlowController | None = None
+        self._u = np.zeros(self.dim)  # the mean force of the state being answered
         if cfg.task == "block":
             self.x_ref = self.goal[BLOCK_AXES].copy()
         else:
@@ -92,6 +98,16 @@ class RolloutRunner:
         """The reset seed actually used (None for fixed starts)."""
         return None if self.cfg.start == "fixed" else seed
 
+    def episode_spec(self, sigma: np.ndarray | None) -> EpisodeSpec:
+        """The ``EpisodeSpec`` of one in-process episode: the config's length and decision period,
+        noise std ``sigma`` (None: deterministic), the task's goal and reward weights."""
+        cfg = self.cfg
+        K, period = cfg.decisions_per_episode, cfg.decision_period
+        return EpisodeSpec(episode_id=0, policy_version=0, duration=K * period, decision_period=period,
+                           control_period=period / cfg.steps_per_decision,
+                           sigma=sigma, noise_seed=0, x_goal=self.x_ref, weights=self.weights,
+                           chunk_decisions=K)
+
     def run_episode(
         self,
         evaluator: object,
@@ -100,85 +116,78 @@ class RolloutRunner:
         noise_rng: np.random.Generator | None,
     ) -> EpisodeRecord:
         """Run one episode with the mean force of ``evaluator`` (``force(x, xdot, out)``) and noise
-        of std ``sigma`` (shape (d,)) from ``noise_rng``; ``sigma`` None: deterministic controller."""
+        of std ``sigma`` (shape (d,)) from ``noise_rng``; ``sigma`` None: deterministic controller.
+
+        The episode itself (held noise, record, reward) is the controller's ``EpisodeRun``: this
+        loop only steps the world and closes each decision with the simulator's state."""
         cfg = self.cfg
         K, P, d = cfg.decisions_per_episode, cfg.steps_per_decision, self.dim
         seed = self.start_seed(start_seed)
         self.env.reset(seed=seed)
-        X, XD, U = np.zeros((K, d)), np.zeros((K, d)), np.zeros((K, d))
-        E = np.zeros((K, d))
-        Dist, Vel = np.zeros((K, d)), np.zeros((K, d))
-        depth, success = np.zeros(K), np.zeros(K, dtype=bool)
-        stochastic = sigma is not None
-        if stochastic:
+        if sigma is not None:
             sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (d,)).copy()
             if noise_rng is None:
                 raise ValueError("noise_rng is required when sigma is given")
-        run = self._arm_period if self.arm is not None else self._block_period
+        run = EpisodeRun(self.episode_spec(sigma), rng=noise_rng)
+        period = self._arm_period if self.arm is not None else self._block_period
         if self.controller is None and self.arm is not None:
             self.controller = FlowController(self.arm, evaluator)
         if self.controller is not None:
             self.controller.set_evaluator(evaluator)
             self.controller.reset_rate_limit()
             self.controller.clear_fault()
-        torque_sum, faults = 0.0, 0
-        env = self.env
+        success = np.zeros(K, dtype=bool)
+        faults = 0
         for k in range(K):
-            if stochastic:
-                E[k] = sigma * noise_rng.standard_normal(d)
-            tq, fault = run(evaluator, E[k], P, X[k], XD[k], U[k])
-            torque_sum += tq
-            faults += fault
-            if self.arm is None:
-                Dist[k] = env.x[BLOCK_AXES] - self.x_ref
-                Vel[k] = env.xdot[BLOCK_AXES]
-            else:
-                Dist[k] = env.x - self.goal
-                Vel[k] = env.xdot
-            depth[k] = env.insertion_depth
-            success[k] = env.success
-        action = U + E
-        terms = reward_terms(Dist, Vel, action, self.weights)
-        reward = np.sum([terms[n] for n in REWARD_TERMS], axis=0)
-        log_prob = gaussian_log_prob(E, sigma) if stochastic else np.zeros(K)
+            faults += period(evaluator, run.noise(), P, run)[1]
+            x, xdot = self.plant_state()
+            run.close_period(x, xdot, self.env.insertion_depth)
+            success[k] = self.env.success
         return EpisodeRecord(
-            t=np.arange(K) * cfg.decision_period, x=X, xdot=XD, u_mean=U, action=action, log_prob=log_prob,
-            reward=reward, terms=terms, depth=depth, success=success, start_seed=seed,
-            final_distance=float(np.linalg.norm(Dist[-1])), torque_norm=torque_sum / (K * P), faults=faults,
+            t=run.decision_times(), x=run.x, xdot=run.xdot, u_mean=run.u_mean, action=run.action(),
+            log_prob=run.log_prob(), reward=run.reward, terms=run.terms, depth=run.depth, success=success,
+            start_seed=seed, final_distance=run.final_distance, torque_norm=run.mean_torque, faults=faults,
         )
 
-    def _arm_period(self, ev: object, eps: np.ndarray, steps: int, x_out: np.ndarray, xdot_out: np.ndarray,
-                    u_out: np.ndarray) -> tuple[float, int]:
-        """``steps`` ms of the controller with held noise ``eps``; records the state at the first ms."""
-        env, ctrl, arm = self.env, self.controller, self.arm
+    def plant_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """The simulator's position and velocity in the controller's frame (arm: the true TCP;
+        block: its x-z plane), views of the simulator's state."""
+        env = self.env
+        if self.arm is None:
+            return env.x[BLOCK_AXES], env.xdot[BLOCK_AXES]
+        return env.x, env.xdot
+
+    def _arm_period(self, ev: object, eps: np.ndarray, steps: int, run: EpisodeRun | None) -> tuple[float, int]:
+        """``steps`` ms of the controller with held noise ``eps``, each state recorded in ``run``
+        (if given); (sum of |tau - g| over the period, new faults)."""
+        env, ctrl, arm, u = self.env, self.controller, self.arm, self._u
         total, fault = 0.0, 0
         for j in range(steps):
             had_fault = bool(ctrl.fault)
             tau = ctrl.step(env.q, env.dq, eps)
             fault += int(bool(ctrl.fault) and not had_fault)
-            if j == 0:
-                x_out[:] = arm.x
-                xdot_out[:] = ctrl.xdot
-                ev.force(arm.x, ctrl.xdot, u_out)
-            total += excess_norm(tau, arm.g)
+            torque = excess_norm(tau, arm.g)
+            if run is not None:
+                if j == 0:
+                    ev.force(arm.x, ctrl.xdot, u)
+                run.record(arm.x, ctrl.xdot, u, math.nan, torque)
+            total += torque
             env.step(tau)
         return total, fault
 
-    def _block_period(self, ev: object, eps: np.ndarray, steps: int, x_out: np.ndarray, xdot_out: np.ndarray,
-                      u_out: np.ndarray) -> tuple[float, int]:
-        """``steps`` ms of force control of the block (mean force + held noise + gravity compensation)."""
-        env = self.env
-        u = np.empty(self.dim)
+    def _block_period(self, ev: object, eps: np.ndarray, steps: int, run: EpisodeRun | None) -> tuple[float, int]:
+        """``steps`` ms of force control of the block (mean force + held noise + gravity
+        compensation), each state recorded in ``run`` (if given); (sum of |force| beyond gravity, 0)."""
+        env, u = self.env, self._u
         total = 0.0
-        for j in range(steps):
+        for _ in range(steps):
             x = env.x[BLOCK_AXES]
             xdot = env.xdot[BLOCK_AXES]
             ev.force(x, xdot, u)
-            if j == 0:
-                x_out[:] = x
-                xdot_out[:] = xdot
-                u_out[:] = u
             f = u + eps
-            total += math.sqrt(float(f @ f))
+            torque = math.sqrt(float(f @ f))
+            if run is not None:
+                run.record(x, xdot, u, math.nan, torque)
+            total += torque
             env.step(f + env.bias_torques)
         return total, 0

@@ -25,6 +25,7 @@ from tqdm import tqdm
 from nf_controller_node.flow_eval import FlowEvaluator
 from nf_controller_node.flow_spec import FlowArchitecture
 from nf_controller_node.policy_params import PolicyParameters
+from nf_controller_node.reward import REWARD_TERMS
 
 from .config import TrainConfig
 from .mlp_policy import MLPEvaluator, MLPPolicy
@@ -41,7 +42,7 @@ from .ppo import (
     normalize_advantages,
     ppo_update,
 )
-from .rollout import REWARD_TERMS, EpisodeRecord, RolloutRunner
+from .rollout import EpisodeRecord, RolloutRunner
 
 LOG = logging.getLogger("learner_node.trainer")
 CHECKPOINT = "checkpoint.pt"

@@ -1,11 +1,17 @@
-"""ROS-free core of one RL episode run by the controller: held noise, the per-decision record,
-the reward, and the rollout cut into chunks. Mirrors ``learner_node.rollout`` exactly.
+"""ROS-free core of one RL episode: held noise, the per-decision record, the reward, and the
+rollout cut into chunks. The one episode core of the project: the controller runs it over ROS
+(``ControlLoop``, driven by the sim bridge or the Franka driver), the trainer's in-process rollouts
+(``learner_node.rollout``) and the decision-at-a-time view (``learner_node.decision_env``) run it
+in process.
 
 The controller consumes one joint state per millisecond. An episode of K decisions of P
 milliseconds uses K*P + 1 states: at state j = kP (k < K) the noise eps_k ~ N(0, sigma^2) is
-drawn from ``numpy.random.default_rng(noise_seed)`` and held for P steps, and the decision's
-(x, xdot, u_mean) are recorded; the state after the period closes decision k's reward. The last
-state (j = KP) closes the last decision and ends the episode (it is answered without noise).
+drawn from ``numpy.random.default_rng(noise_seed)`` (or a generator the caller passes) and held
+for P steps, and the decision's (x, xdot, u_mean) are recorded; the state after the period closes
+decision k's reward. The last state (j = KP) closes the last decision and ends the episode (it is
+answered without noise). A caller that sees the end of a period from the plant itself (the
+simulator's true TCP) closes the decision with ``close_period`` instead; the next state's
+``record`` then does not close it again.
 """
 
 from __future__ import annotations
@@ -110,7 +116,8 @@ class Chunk:
 class EpisodeRun:
     """State machine of one episode; the control loop calls ``noise`` and ``record`` per state."""
 
-    def __init__(self, spec: EpisodeSpec) -> None:
+    def __init__(self, spec: EpisodeSpec, rng: np.random.Generator | None = None) -> None:
+        """``rng``: the noise generator to draw from instead of ``default_rng(spec.noise_seed)``."""
         spec.check()
         self.spec = spec
         d = spec.x_goal.shape[0]
@@ -128,7 +135,9 @@ class EpisodeRun:
         self.chunks_sent = 0
         self.next_chunk_closes = min(spec.chunk_decisions, self.K)  # ``closed`` at which a chunk is ready
         self.torque_sum = 0.0
-        self._rng = np.random.default_rng(spec.noise_seed) if spec.sigma is not None else None
+        self._rng = None
+        if spec.sigma is not None:
+            self._rng = rng if rng is not None else np.random.default_rng(spec.noise_seed)
         self._zero = np.zeros(d)
 
     @property
@@ -158,7 +167,7 @@ class EpisodeRun:
         unknown) and |tau - g| (Nm) of the command sent."""
         j = self.steps
         k, r = divmod(j, self.P)
-        if r == 0 and k > 0:  # the state after decision k-1's period
+        if r == 0 and k > self.closed:  # the state after decision k-1's period (not closed already)
             self._close(k - 1, x, xdot, depth)
         if k < self.K:
             if r == 0:
@@ -166,6 +175,17 @@ class EpisodeRun:
                 self.u_mean[k] = u_mean
             self.torque_sum += torque_norm
         self.steps += 1
+
+    def close_period(self, x: np.ndarray, xdot: np.ndarray, depth: float) -> None:
+        """Close the decision whose period the states recorded so far complete, with the state at
+        its end as the plant reports it (position x, velocity xdot, insertion depth): for callers
+        that step the world themselves. ``RuntimeError`` when the states so far do not end an open
+        period."""
+        k, r = divmod(self.steps, self.P)
+        if r != 0 or k == 0 or k > self.K or k - 1 < self.closed:
+            raise RuntimeError(f"no open decision period ends after {self.steps} states "
+                               f"({self.closed} of {self.K} decisions closed, {self.P} states each)")
+        self._close(k - 1, x, xdot, depth)
 
     def _close(self, k: int, x: np.ndarray, xdot: np.ndarray, depth: float) -> None:
         self._x_end[k], self._xdot_end[k] = x, xdot
@@ -218,16 +238,32 @@ class EpisodeRun:
     def _chunk(self, seq: int, start: int, stop: int, final: bool, n_total: int) -> Chunk:
         s = slice(start, stop)
         reward, terms = self.reward, self.terms
-        action = self.u_mean[s] + self.eps[s]
-        if self.spec.sigma is None:
-            log_prob = np.zeros(stop - start)
-        else:
-            log_prob = gaussian_log_prob(self.eps[s], self.spec.sigma)
         return Chunk(seq=seq, final=final, n_chunks=n_total if final else 0,
-                     t=np.arange(start, stop) * self.spec.decision_period, x=self.x[s].copy(),
-                     xdot=self.xdot[s].copy(), u_mean=self.u_mean[s].copy(), action=action,
-                     log_prob=log_prob, reward=reward[s].copy(),
+                     t=self.decision_times(s), x=self.x[s].copy(),
+                     xdot=self.xdot[s].copy(), u_mean=self.u_mean[s].copy(), action=self.action(s),
+                     log_prob=self.log_prob(s), reward=reward[s].copy(),
                      terms=np.stack([terms[n][s] for n in REWARD_TERMS], axis=1), depth=self.depth[s].copy())
+
+    def decision_times(self, s: slice = slice(None)) -> np.ndarray:
+        """Time of each decision of ``s`` in the episode, s (new array)."""
+        return np.arange(self.K)[s] * self.spec.decision_period
+
+    def action(self, s: slice = slice(None)) -> np.ndarray:
+        """u_mean + held noise of the decisions ``s`` (new array)."""
+        return self.u_mean[s] + self.eps[s]
+
+    def log_prob(self, s: slice = slice(None)) -> np.ndarray:
+        """Log-density of the actions of ``s`` under the behaviour policy (zeros when deterministic)."""
+        if self.spec.sigma is None:
+            return np.zeros(len(self.eps[s]))
+        return gaussian_log_prob(self.eps[s], self.spec.sigma)
+
+    @property
+    def final_distance(self) -> float:
+        """|x - x_goal| at the state that closed the last closed decision, m (NaN before any)."""
+        if self.closed == 0:
+            return math.nan
+        return float(np.linalg.norm(self._x_end[self.closed - 1] - self.spec.x_goal))
 
     @property
     def episode_return(self) -> float:
