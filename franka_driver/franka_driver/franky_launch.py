@@ -23,9 +23,11 @@ description's ``fr3_hand``: the flange turned -45 deg about z) with the held-par
 mass and inertia, so the driver's TCP model (``held_part: gear``) is where the simulated gear is.
 Contacts: the gear's and the fixture's contact bits, solref, solimp and friction of our scenes,
 multi-point convex collision off as there. franky-sim's own geoms (arm, hand, fingers, floor)
-keep contype = conaffinity = 1, so they touch neither the gear nor the shaft: the fingertip pads,
-which reach 8 mm below the gear's top face into the bore's radius, pass the pin at full depth (our
-gear scene excludes the finger-shaft pairs for the same reason). franky-sim's gravity
+keep contype = conaffinity = 1, so they touch neither the gear nor the shaft. At franky-sim's
+initial hand width (40 mm) the fingertip pads sit 21.5-29.5 mm from the axis and reach 8 mm below
+the gear's top face, into the ring's volume (as if gripping it), clear of the 14 mm pin and 12 mm
+above the shoulder at full depth; closed fingers would enter the bore, where our gear scene
+excludes the finger-shaft pairs and the contact bits do it here. franky-sim's gravity
 compensation does not know the gear (0.12 kg) unless ``--gear-load`` configures it as the
 robot's end-effector load (what Desk's end-effector settings do on a real arm; libfranka's
 ``setLoad`` does the same at run time).
