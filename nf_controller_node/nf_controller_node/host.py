@@ -51,7 +51,6 @@ class HostEvent:
     chunk: Chunk | None = None
     text: str = ""
     stamp_ns: int = 0  # stamp of the state that produced it
-    x: np.ndarray | None = None  # EPISODE_END: TCP position (m) at the episode's last state
 
 
 class EpisodeDriver(Protocol):
@@ -181,8 +180,7 @@ class ControllerHost:
         loop = self.loop
         run = loop.end_episode()
         if run is not None:
-            x = loop.controller.arm.x.copy() if loop.have_state else None
-            self._outbox.append(HostEvent(EPISODE_END, run=run, text=problem, stamp_ns=self.last_stamp_ns, x=x))
+            self._outbox.append(HostEvent(EPISODE_END, run=run, text=problem, stamp_ns=self.last_stamp_ns))
 
 
 def success_of(depth: float, success: bool) -> bool:

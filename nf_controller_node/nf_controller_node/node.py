@@ -209,7 +209,6 @@ class NFControllerNode(Node):
         self._weights = RewardWeights.from_config(_Attrs(p))
         self._episode_ids = itertools.count(int(time.time() * 1000) * 1000)  # unique across restarts
         self._episode_run: EpisodeRun | None = None
-        self._final_x: np.ndarray | None = None
         self._goal = None
         self._resetting = False
         self._unanswered: JointState | None = None  # the last state left unanswered (see _release_states)
@@ -293,7 +292,6 @@ class NFControllerNode(Node):
                 self._publish_chunk(event.run, event.chunk, event.stamp_ns)
             elif event.kind == EPISODE_END:
                 if event.run is self._episode_run:
-                    self._final_x = event.x
                     self._episode_ended(event.text)
             elif event.kind == FAULT:
                 self.get_logger().error(f"safe hold: {event.text}")
@@ -418,7 +416,6 @@ class NFControllerNode(Node):
                            weights=self._weights, chunk_decisions=p["chunk_decisions"])
         setup.run = run = EpisodeRun(spec)
         self._episode_run = run
-        self._final_x = None
         self.host.set_task(float("nan"), False)
         if self.composed:  # the driver resets its world (sim: at once; robot: a motion), then starts run
             if self._driver is None:
@@ -520,10 +517,8 @@ class NFControllerNode(Node):
         result.episode_return = run.episode_return
         result.insertion_depth = float(self.host.depth)
         result.success = success_of(self.host.depth, self.host.success)
-        if run.closed:
-            result.final_distance = float(np.linalg.norm(run.x[run.closed - 1] - spec.x_goal))
-        if run.done and self._final_x is not None:
-            result.final_distance = float(np.linalg.norm(self._final_x - spec.x_goal))
+        if run.closed:  # at the state that closed the last closed decision (the last state when done)
+            result.final_distance = run.final_distance
         result.torque_norm = run.mean_torque
         result.message = problem or f"{run.K} decisions, {run.chunks_sent} chunks"
         return result
