@@ -93,10 +93,10 @@ def gear_task_elements(mouth_in_world: np.ndarray) -> tuple[ET.Element, ET.Eleme
     hand = spec.worldbody.add_body()
     hand.name = "hand"
     part = add_gear(hand)
-    for geom in spec.body(part.body).geoms:  # as scenes._arm_scene does for the held part
+    for geom in spec.body(part.body).geoms:  # as the gear scene does for the held part
         if geom.contype:
-            scenes._contact_params(geom)
-    scenes._add_shaft(spec)  # base block, shoulder, pin; top face at FIXTURE_TOP over FIXTURE_XY
+            scenes.contact_params(geom)
+    scenes.add_shaft(spec)  # base block, shoulder, pin; top face at FIXTURE_TOP over FIXTURE_XY
     root = ET.fromstring(spec.to_xml())
     gear = root.find(f".//body[@name='{part.body}']")
     shaft = root.find(f".//body[@name='{SHAFT_BODY}']")
@@ -125,7 +125,7 @@ def add_gear_task(sim: Any, mouth_in_base: np.ndarray) -> None:
     option = sim.scene.find("option")
     if option is None:
         option = ET.SubElement(sim.scene, "option")
-    ET.SubElement(option, "flag", multiccd="disable")  # as scenes._add_lights_and_table
+    ET.SubElement(option, "flag", multiccd="disable")  # as scenes.py does for its own scenes
 
 
 def configure_gear_load(robot: Any) -> tuple[float, np.ndarray]:

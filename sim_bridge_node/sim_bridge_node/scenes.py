@@ -161,10 +161,12 @@ def _add_contact_sensor(spec: mujoco.MjSpec, body_name: str) -> None:
 def _make_fixed_solid(geom: mujoco.MjsGeom) -> None:
     geom.contype = 0
     geom.conaffinity = CONTACT_MOVING
-    _contact_params(geom)
+    contact_params(geom)
 
 
-def _contact_params(geom: mujoco.MjsGeom) -> None:
+def contact_params(geom: mujoco.MjsGeom) -> None:
+    """The task contacts' solref, solimp, friction and condim on ``geom`` (used by the franky-sim
+    gear fixture too)."""
     geom.solref = CONTACT_SOLREF
     geom.solimp = CONTACT_SOLIMP
     geom.friction = CONTACT_FRICTION
@@ -193,8 +195,9 @@ def _cylinder(body: mujoco.MjsBody, name: str, radius: float, z0: float, z1: flo
     return geom
 
 
-def _add_shaft(spec: mujoco.MjSpec) -> None:
-    """Stepped shaft: base block, shoulder, 28 mm pin (convex pieces: one box, two cylinders)."""
+def add_shaft(spec: mujoco.MjSpec) -> None:
+    """Stepped shaft: base block, shoulder, 28 mm pin (convex pieces: one box, two cylinders), its
+    top face at ``FIXTURE_TOP`` over ``FIXTURE_XY`` (``franka_driver.franky_launch`` moves a copy)."""
     body = spec.worldbody.add_body()
     body.name = "shaft"
     body.pos = [FIXTURE_XY[0], FIXTURE_XY[1], 0.0]
@@ -228,16 +231,16 @@ def _arm_scene(task: str) -> Scene:
     held = add_peg(hand) if task == "peg" else add_gear(hand)
     for geom in spec.body(held.body).geoms:
         if geom.contype:
-            _contact_params(geom)
+            contact_params(geom)
     for body in spec.bodies:  # arm links may touch the table and fixtures with the same model
         if body.name.startswith("panda_"):
             for geom in body.geoms:
-                _contact_params(geom)
+                contact_params(geom)
     center = np.array([FIXTURE_XY[0], FIXTURE_XY[1], FIXTURE_TOP])
     _add_lights_and_table(spec, center)
     fixture = ""
     if task == "gear":
-        _add_shaft(spec)
+        add_shaft(spec)
         fixture = "shaft"
         # The closed fingertip pads reach 9.5 mm into the bore's upper end (they "hold" the gear
         # there); the pin passes between them at full depth instead of stopping on them.
@@ -328,7 +331,7 @@ def _block_scene(plane: str) -> Scene:
     geom.rgba = BLOCK_RGBA
     geom.contype = CONTACT_MOVING
     geom.conaffinity = 0
-    _contact_params(geom)
+    contact_params(geom)
     block.explicitinertial = True
     block.mass = BLOCK_MASS
     block.inertia = [BLOCK_MASS * BLOCK_SIZE**2 / 6.0] * 3
