@@ -14,7 +14,9 @@ through two doors:
 - ``call(fn)`` queues ``fn`` to run on the driver thread at the next ``service()`` and returns a
   ``concurrent.futures.Future`` of its result: policy swaps, episode starts, world resets;
 - ``drain()`` hands over what the ticks produced since the last drain (``HostEvent``: rollout
-  chunks, episode ends, new faults), to publish or log outside the tick.
+  chunks, episode ends, new faults), to publish or log outside the tick. ``notify``, if set, is
+  called on the driver thread when a tick queues events (the node passes a guard condition's
+  ``trigger``: its executor wakes for events instead of polling).
 
 Both are ``collections.deque`` operations (atomic under the GIL) plus an ``Event`` for a driver
 that sleeps while idle (``wait_for_work``). The slow side never holds a lock the tick needs.
@@ -74,6 +76,7 @@ class ControllerHost:
         self._work = threading.Event()
         self.last_stamp_ns = 0  # stamp of the last state ticked
         self.tau = np.zeros(loop.n)  # last torque returned (a copy, for status and monitoring)
+        self.notify: Callable[[], None] | None = None  # called (driver thread) when events are queued
 
     # ------------------------------------------------------------------ slow side (any thread)
     def call(self, fn: Callable[[], T]) -> Future:
@@ -162,12 +165,12 @@ class ControllerHost:
         missed = loop.record_latency(time.perf_counter() - t0)
         fault = new_fault or missed
         if fault:
-            self._outbox.append(HostEvent(FAULT, text=fault, stamp_ns=stamp_ns))
+            self._emit(HostEvent(FAULT, text=fault, stamp_ns=stamp_ns))
         run = loop.episode
         if run is not None and run.steps:
             if run.closed >= run.next_chunk_closes:
                 for chunk in run.ready_chunks():
-                    self._outbox.append(HostEvent(CHUNK, run=run, chunk=chunk, stamp_ns=stamp_ns))
+                    self._emit(HostEvent(CHUNK, run=run, chunk=chunk, stamp_ns=stamp_ns))
             if fault or loop.fault:
                 self.end_episode(f"aborted: safe hold ({fault or loop.fault})")
             elif run.done:
@@ -175,12 +178,17 @@ class ControllerHost:
         self.tau[:] = tau
         return tau
 
+    def _emit(self, event: HostEvent) -> None:
+        self._outbox.append(event)
+        if self.notify is not None:
+            self.notify()
+
     def end_episode(self, problem: str) -> None:
         """End the running episode (driver thread): ``problem`` empty when it completed."""
         loop = self.loop
         run = loop.end_episode()
         if run is not None:
-            self._outbox.append(HostEvent(EPISODE_END, run=run, text=problem, stamp_ns=self.last_stamp_ns))
+            self._emit(HostEvent(EPISODE_END, run=run, text=problem, stamp_ns=self.last_stamp_ns))
 
 
 def success_of(depth: float, success: bool) -> bool:

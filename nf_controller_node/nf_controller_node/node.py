@@ -112,9 +112,10 @@ class _Attrs:
 
 SETUP_POLL = 0.002  # s, how often a goal being set up looks at its policy version and reset
 SERVICE_WAIT = 5.0  # s, standalone: longest wait for the sim's reset service to appear
-# s, composed: how often the ticks' chunks, episode ends and faults are taken (every wake-up of the
-# executor thread takes the GIL from the driver; rclpy's EventsExecutor has no guard conditions)
-DRAIN_PERIOD = 0.005
+# s, composed: the ticks' chunks, episode ends and faults are taken when the host queues them (the
+# driver thread posts a task to the executor: rclpy's EventsExecutor has no guard conditions); this
+# poll is only the fallback (every wake-up of the executor thread takes the GIL from the driver)
+DRAIN_PERIOD = 0.25
 MAX_FAULT_TEXT = 300  # characters of a fault reason in status, diagnostics and logs
 BASE_FRAME = "panda_link0"
 
@@ -194,6 +195,7 @@ class NFControllerNode(Node):
             depth=100, reliability=ReliabilityPolicy.RELIABLE))
         self._reset_client = None
         if composed:
+            self.host.notify = self._post_drain
             self.create_timer(DRAIN_PERIOD, self._drain)
         else:
             self._dim = MultiArrayDimension(label="", size=self.loop.n, stride=self.loop.n)
@@ -284,6 +286,16 @@ class NFControllerNode(Node):
         self.loop.on_task_status(msg.insertion_depth, msg.success)  # checked; rejections are counted
 
     # ------------------------------------------------------------------ what the ticks produced
+    def _post_drain(self) -> None:
+        """Driver thread, when a tick queued events: have the executor drain them now."""
+        executor = self.executor
+        if executor is None:
+            return
+        try:
+            executor.create_task(self._drain)
+        except Exception:  # shutting down: the poll timer (or nobody) drains; never the tick's problem
+            pass
+
     def _drain(self) -> None:
         """Publish the chunks, episode ends and faults the ticks produced (after each tick when
         standalone, from a timer when composed)."""
