@@ -8,17 +8,22 @@ next 1 ms tick. The longest run of consecutive misses is the number that matters
 Franka, which aborts at about 20.
 
 Phases in the same run, each with fresh processes (own ROS_DOMAIN_ID, loopback only):
+  0. wake-up floor (no ROS, no work, this process): a bare Python loop waiting for 1 ms deadlines,
+     asleep (``time.sleep``) and with the composed driver's ``DeadlineWait`` (asleep, then the last
+     0.3 ms awake without the GIL): how late this machine wakes a thread that has nothing to do;
   1. composed: ``nf_sim_stack`` (sim_bridge + nf_controller in one process, the tick a direct
      call) running the gear task's iteration-0 policy, while a new policy version is published
      every second (each is validated and compiled on the executor thread: the slow side the tick
      must not wait for). The driver times itself: state read -> torque written, tick period, ticks
      starting more than 1 ms late and the longest run of them;
+  1b. composed_sleep: the same with ``sim_bridge:realtime_spin:=0`` (each period waited asleep);
   2. baseline: the sim answered by ``realtime_echo.py`` over DDS (same runtime, no controller work);
   3. controller: the sim answered by the standalone nf_controller over DDS (the ros2_control
      topics path), timed at the sim from publishing state k to receiving its command.
 Writes ``bench/results/realtime.json``. Targets: composed p99 <= 150 us, p99.9 <= 300 us and never
 3 late ticks in a row; topics path (reported): p99 <= 0.5 ms, never 20 misses in a row.
-Usage: python bench/bench_realtime.py [--seconds 600] [--topic-seconds 600] [--baseline-seconds 60] [--quick]
+Usage: python bench/bench_realtime.py [--seconds 600] [--sleep-seconds 60] [--topic-seconds 600]
+       [--baseline-seconds 60] [--floor-seconds 30] [--quick]
 """
 
 from __future__ import annotations
@@ -89,13 +94,40 @@ def _policy_publisher(domain: int):
     return context, node, executor, republish
 
 
+def wake_floor(seconds: float, spin: float) -> dict:
+    """Lateness (us) of a loop that only waits for 1 ms deadlines with ``DeadlineWait(spin)`` (0:
+    asleep): percentiles and the fraction of periods more than 1 ms late."""
+    from sim_bridge_node.deadline_wait import DeadlineWait
+
+    waiter = DeadlineWait(spin)
+    n = max(1, round(seconds / 0.001))
+    late = np.empty(n)
+    due = time.perf_counter()
+    for i in range(n):
+        due += 0.001
+        waiter.wait(due)
+        late[i] = time.perf_counter() - due
+        if late[i] > 0.01:  # a stall: new schedule, as the drivers do
+            due = time.perf_counter()
+    us = late * 1e6
+    p50, p99, p999 = np.percentile(us, [50, 99, 99.9])
+    out = {"spin_s": spin, "periods": n, "p50_us": float(p50), "p99_us": float(p99), "p999_us": float(p999),
+           "max_us": float(us.max()), "late_1ms_fraction": float(np.mean(us > 1000.0))}
+    print(f"[floor, {'asleep' if spin == 0 else f'last {spin * 1e3:g} ms awake'}] {n} periods: wake-up "
+          f"{p50:.0f} / {p99:.0f} / {p999:.0f} us late (p50 / p99 / p99.9), more than 1 ms late "
+          f"{100 * out['late_1ms_fraction']:.3f} %", flush=True)
+    return out
+
+
 def run_phase(name: str, seconds: float, domain: int, workdir: Path, log_dir: Path) -> dict:
     """One phase: start sim + responder, wait for the first answers, run ``seconds``, stop, read the log."""
     log = workdir / f"{name}.npy"
     sim_args = ["-m", "sim_bridge_node.node", "--ros-args", "--params-file", str(CONFIG),
                 "-p", "sim_bridge:mode:=realtime", "-p", f"sim_bridge:response_log:={log}"]
-    if name == "composed":
+    if name.startswith("composed"):
         sim_args = ["-m", "nf_bringup.sim_stack", *sim_args[2:], "-p", "nf_controller:idle_mode:=policy"]
+        if name == "composed_sleep":
+            sim_args += ["-p", "sim_bridge:realtime_spin:=0.0"]
         responder = None
     elif name == "baseline":
         sim_args += ["-p", "sim_bridge:driver_gravity_compensation:=true"]
@@ -153,7 +185,7 @@ def run_phase(name: str, seconds: float, domain: int, workdir: Path, log_dir: Pa
         raise RuntimeError(f"{name}: the sim wrote no response log (see {log_dir})")
     summary = json.loads(summary_file.read_text())
     lat = np.load(log)
-    if name == "composed":
+    if name.startswith("composed"):
         summary["policy_swaps_published"] = swaps
         installed = (log_dir / f"{name}_sim.log").read_text().count("installed:")
         summary["policy_swaps_installed"] = installed
@@ -178,19 +210,31 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=600.0, help="length of the composed phase (s)")
     parser.add_argument("--topic-seconds", type=float, default=600.0,
                         help="length of the controller-over-topics phase (s; 0 skips it and the baseline)")
+    parser.add_argument("--sleep-seconds", type=float, default=60.0,
+                        help="length of the composed phase with each period waited asleep (s; 0 skips it)")
     parser.add_argument("--baseline-seconds", type=float, default=60.0, help="length of the baseline phase (s)")
-    parser.add_argument("--quick", action="store_true", help="30 s composed, 30 s over topics, 10 s baseline")
+    parser.add_argument("--floor-seconds", type=float, default=30.0,
+                        help="length of each wake-up floor measurement (s; 0 skips them)")
+    parser.add_argument("--quick", action="store_true",
+                        help="30 s composed, 30 s asleep, 30 s over topics, 10 s baseline, 10 s floors")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "realtime.json")
     args = parser.parse_args()
     if args.quick:
-        args.seconds, args.topic_seconds, args.baseline_seconds = 30.0, 30.0, 10.0
+        args.seconds, args.sleep_seconds, args.topic_seconds, args.baseline_seconds = 30.0, 30.0, 30.0, 10.0
+        args.floor_seconds = 10.0
     domain = 100 + os.getpid() % 50
     load_before = os.getloadavg()
-    baseline = controller = None
+    baseline = controller = composed_sleep = None
+    floor = None
+    if args.floor_seconds > 0:
+        floor = {"asleep": wake_floor(args.floor_seconds, 0.0), "deadline_wait": wake_floor(args.floor_seconds, 3e-4)}
     with tempfile.TemporaryDirectory() as tmp:
         log_dir = args.out.parent / "realtime_logs"
         log_dir.mkdir(parents=True, exist_ok=True)
         composed = run_phase("composed", args.seconds, domain + 2, Path(tmp), log_dir)
+        if args.sleep_seconds > 0:
+            composed_sleep = run_phase("composed_sleep", args.sleep_seconds, domain + 3, Path(tmp), log_dir)
+            composed_sleep["late_fraction"] = composed_sleep["late_ticks"] / max(composed_sleep["ticks"], 1)
         if args.topic_seconds > 0:
             baseline = run_phase("baseline", args.baseline_seconds, domain, Path(tmp), log_dir)
             controller = run_phase("controller", args.topic_seconds, domain + 1, Path(tmp), log_dir)
@@ -200,11 +244,16 @@ def main() -> int:
         "benchmark": "realtime state-to-command latency at 1 kHz: sim_bridge realtime with the controller composed "
                      "in its process, and with a responder in a separate process over topics",
         "command": "python bench/bench_realtime.py" + (" --quick" if args.quick else
-                                                       f" --seconds {args.seconds:g} --topic-seconds "
+                                                       f" --seconds {args.seconds:g} --sleep-seconds "
+                                                       f"{args.sleep_seconds:g} --topic-seconds "
                                                        f"{args.topic_seconds:g} --baseline-seconds "
-                                                       f"{args.baseline_seconds:g}"),
-        "seconds": {"composed": args.seconds, "controller": args.topic_seconds, "baseline": args.baseline_seconds},
+                                                       f"{args.baseline_seconds:g} --floor-seconds "
+                                                       f"{args.floor_seconds:g}"),
+        "seconds": {"composed": args.seconds, "composed_sleep": args.sleep_seconds, "controller": args.topic_seconds,
+                    "baseline": args.baseline_seconds, "floor": args.floor_seconds},
+        "wake_floor": floor,
         "composed": composed,
+        "composed_sleep": composed_sleep,
         "composed_targets": {"p99_us_max": COMPOSED_P99_US, "late_fraction_max": COMPOSED_LATE_FRACTION,
                              "longest_late_run_max": COMPOSED_LATE_RUN_MAX},
         "composed_met": bool(composed["p99_us"] <= COMPOSED_P99_US and late_fraction <= COMPOSED_LATE_FRACTION
@@ -225,6 +274,12 @@ def main() -> int:
           f"{100 * late_fraction:.3f} %, longest late run {composed['longest_late_run']} (targets p99 <= "
           f"{COMPOSED_P99_US:.0f} us, <= {100 * COMPOSED_LATE_FRACTION:g} %, <= {COMPOSED_LATE_RUN_MAX}: "
           f"{met[result['composed_met']]})", flush=True)
+    if composed_sleep:
+        print(f"composed, periods waited asleep: p99 {composed_sleep['p99_us']:.0f} us, late ticks "
+              f"{100 * composed_sleep['late_fraction']:.3f} %, longest late run {composed_sleep['longest_late_run']}")
+    if floor:
+        print(f"wake-up floor (no work): asleep {100 * floor['asleep']['late_1ms_fraction']:.3f} % of periods more "
+              f"than 1 ms late, with DeadlineWait {100 * floor['deadline_wait']['late_1ms_fraction']:.3f} %")
     if controller:
         print(f"over topics: p99 {controller['p99_us']:.0f} us (target <= {TARGET_P99_US:.0f}: "
               f"{met[result['p99_met']]}); longest miss run {controller['longest_miss_run']} (target < {ABORT_RUN}: "

@@ -49,6 +49,15 @@ def _realtime_line(realtime: dict) -> str:
             f"{k['p999_us']:.0f} us, late ticks {100 * k['late_fraction']:.3f} % (<= "
             f"{100 * t['late_fraction_max']:g} %), longest run of late ticks {k['longest_late_run']} "
             f"(<= {t['longest_late_run_max']})")
+    asleep, floor = realtime.get("composed_sleep"), realtime.get("wake_floor")
+    if asleep:
+        line += (f"\n   the same, periods waited asleep ({realtime['seconds']['composed_sleep']:.0f} s): p99 "
+                 f"{asleep['p99_us']:.0f} us, late ticks {100 * asleep['late_fraction']:.3f} %, longest run "
+                 f"{asleep['longest_late_run']}")
+    if floor:
+        line += (f"\n   this machine's wake-up floor (a loop with no work): more than 1 ms late "
+                 f"{100 * floor['asleep']['late_1ms_fraction']:.3f} % asleep, "
+                 f"{100 * floor['deadline_wait']['late_1ms_fraction']:.3f} % with DeadlineWait")
     if realtime.get("controller") is None:
         return line
     c, e = realtime["controller"], realtime["baseline_echo"]

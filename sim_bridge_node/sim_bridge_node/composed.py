@@ -9,7 +9,8 @@ joint states and the rest). No DDS between state and torque.
   most real time, and when the controller would leave a state unanswered (idle_mode "pause") the
   thread sleeps until work is posted.
 - realtime: one step per ``dt`` of wall clock, like a robot's driver; the loop times itself
-  (``TickTiming``): state-to-command latency, tick period, ticks that start late.
+  (``TickTiming``): state-to-command latency, tick period, ticks that start late. It waits for each
+  period with ``DeadlineWait(spin)``: asleep, then the last ``spin`` s awake without the GIL.
 
 Episodes (``begin_episode``) reset the world on this thread and start the episode at the reset
 state, exactly as the in-process rollout does.
@@ -29,6 +30,7 @@ from nf_controller_node.episode import EpisodeRun
 from nf_controller_node.host import ControllerHost
 from nf_controller_node.tick_timing import LATE_AFTER, TickTiming
 from sim_bridge_node.bridge import ACCEPTED, SimBridge
+from sim_bridge_node.deadline_wait import DeadlineWait
 
 _WAIT_IDLE = 0.05  # s, longest sleep of an idle lockstep loop before it looks again
 TASK_EVERY = 20  # steps between task reports (depth, success) outside episodes
@@ -38,7 +40,8 @@ class SimDriverLoop:
     """Steps a ``SimBridge`` with the torques of a ``ControllerHost``; see the module docstring."""
 
     def __init__(self, bridge: SimBridge, host: ControllerHost, realtime: bool,
-                 after_step: Callable[[], None] = lambda: None, keep_timing: bool = False) -> None:
+                 after_step: Callable[[], None] = lambda: None, keep_timing: bool = False,
+                 spin: float = 0.0) -> None:
         if tuple(host.joint_names) != tuple(bridge.joint_names):
             raise ValueError(f"controller joints {host.joint_names} differ from the simulated arm's "
                              f"{list(bridge.joint_names)}")
@@ -47,6 +50,7 @@ class SimDriverLoop:
         self.realtime = realtime
         self.after_step = after_step
         self.timing = TickTiming(keep_all=keep_timing) if realtime else None
+        self._deadline = DeadlineWait(spin if realtime else 0.0)  # realtime: how the loop waits for a period
         self._success_depth = bridge.env.scene.success_depth
         self.bad_torques = 0  # torques the bridge refused (never expected: the host returns finite ones)
         self.errors: list[str] = []
@@ -130,7 +134,7 @@ class SimDriverLoop:
             due += dt
             wait = due - time.perf_counter()
             if wait > 0.0:
-                time.sleep(wait)
+                self._deadline.wait(due)
             elif -wait > 10 * dt:  # far behind (a stall): start a new schedule instead of racing
                 timing.resyncs += 1
                 due = time.perf_counter()

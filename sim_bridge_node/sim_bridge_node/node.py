@@ -68,6 +68,8 @@ PARAMETERS = {
     "clock_period": (0.001, "s of simulated time between clock messages (0: every step)"),
     "monitor_period": (0.0, "composed only: s of simulated time between joint_states and applied-command messages "
                             "(0: every step; they are for monitoring and bags, the controller is called directly)"),
+    "realtime_spin": (0.0003, "composed realtime: the last s of each 1 ms period waited awake without the GIL "
+                              "instead of asleep (0: sleep only; costs up to that much CPU per period)"),
     "diagnostics_period": (1.0, "s of wall time between /diagnostics messages"),
     "response_log": ("", "realtime: every latency to this .npy (+ .json summary) at shutdown; folder checked at start"),
 }
@@ -91,6 +93,8 @@ def _check(p: dict) -> None:
     for name in ("task_status_rate", "clock_period", "monitor_period"):
         if not p[name] >= 0.0:
             raise ValueError(f"{name} must be >= 0, got {p[name]}")
+    if not 0.0 <= p["realtime_spin"] <= 0.0005:
+        raise ValueError(f"realtime_spin must be between 0 and 0.0005 s (half a period), got {p['realtime_spin']}")
     if p["response_log"]:  # fail now, not after a long run when the log is written at shutdown
         folder = Path(p["response_log"]).parent
         try:
@@ -136,7 +140,7 @@ class SimBridgeNode(Node):
         self._driver_stop = threading.Event()
         if host is not None:
             self.driver = SimDriverLoop(self.bridge, host, realtime=not self.lockstep, after_step=self._after_step,
-                                        keep_timing=bool(p["response_log"]))
+                                        keep_timing=bool(p["response_log"]), spin=p["realtime_spin"])
             self._cmd = Float64MultiArray()
             self._cmd_dim = MultiArrayDimension(label="", size=len(self._state.name), stride=len(self._state.name))
             self._cmd.layout.dim = [self._cmd_dim]
