@@ -31,8 +31,9 @@ STATE_STAMP_LABEL = "state_stamp_ns="
 
 
 def stamp_label(stamp_ns: int) -> str:
-    """The label that marks a command as the answer to the state stamped ``stamp_ns``."""
-    return f"{STATE_STAMP_LABEL}{stamp_ns}"
+    """The label that marks a command as the answer to the state stamped ``stamp_ns`` (always the
+    same length: the stamp zero-padded to 20 digits, so a serialized command can be rewritten in place)."""
+    return f"{STATE_STAMP_LABEL}{stamp_ns:020d}"
 
 
 def parse_stamp_label(label: str) -> int | None:

@@ -25,7 +25,6 @@ process and the bridge calls it directly every step on a driver thread
 
 from __future__ import annotations
 
-import array
 import json
 import math
 import os
@@ -34,7 +33,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nf_msgs.msg import TaskStatus
 from nf_msgs.srv import ResetSim
@@ -47,6 +45,7 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from nf_controller_node import topics
 from nf_controller_node.host import ControllerHost
 from nf_controller_node.ros_runtime import declare_read_only, run_node
+from nf_controller_node.serialized_message import SerializedMessage
 from nf_controller_node.topics import parse_stamp_label
 from sim_bridge_node.bridge import ACCEPTED, BridgeConfig, SimBridge
 from sim_bridge_node.composed import SimDriverLoop, latencies_us
@@ -77,11 +76,6 @@ PARAMETERS = {
 STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)  # ros2_control's default
 PUBLISH_QOS = QoSProfile(depth=topics.PUBLISH_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
 _LATE_TICK = 2.0  # realtime: a tick later than this many periods counts as late
-
-
-def _stamp(ns: int) -> Time:
-    sec, nanosec = divmod(ns, 1_000_000_000)
-    return Time(sec=sec, nanosec=nanosec)
 
 
 def _check(p: dict) -> None:
@@ -127,12 +121,21 @@ class SimBridgeNode(Node):
 
         self._state = JointState()
         self._state.name = list(self.bridge.joint_names)
+        n = len(self._state.name)
+        self._state.position, self._state.velocity, self._state.effort = [0.0] * n, [0.0] * n, [0.0] * n
+        # the messages published every few steps (from the driver thread when composed), serialized
+        # once and rewritten in place: no field setters and no conversion per publish
+        self._state_raw = SerializedMessage(self._state, floats=("position", "velocity", "effort"),
+                                            stamp="header.stamp")
         self._clock_msg = Clock()
+        self._clock_raw = SerializedMessage(self._clock_msg, stamp="clock")
         self._state_pub = self.create_publisher(JointState, topics.JOINT_STATES, PUBLISH_QOS)
         self._clock_pub = self.create_publisher(Clock, topics.CLOCK, PUBLISH_QOS) if self.lockstep else None
         self._task_pub = self.create_publisher(TaskStatus, topics.TASK_STATUS, PUBLISH_QOS)
-        self._task_msg = TaskStatus(task=self.bridge.env.task)
+        self._task_msg = TaskStatus(task=self.bridge.env.task, part_position=[0.0, 0.0, 0.0])
         self._task_msg.header.frame_id = "world"
+        self._task_raw = SerializedMessage(self._task_msg, floats=("insertion_depth", "contact_force", "part_position"),
+                                           bools=("success",), stamp="header.stamp")
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
         self.create_service(ResetSim, "~/reset", self._on_reset)
         self.driver: SimDriverLoop | None = None
@@ -142,8 +145,10 @@ class SimBridgeNode(Node):
             self.driver = SimDriverLoop(self.bridge, host, realtime=not self.lockstep, after_step=self._after_step,
                                         keep_timing=bool(p["response_log"]), spin=p["realtime_spin"])
             self._cmd = Float64MultiArray()
-            self._cmd_dim = MultiArrayDimension(label="", size=len(self._state.name), stride=len(self._state.name))
+            self._cmd_dim = MultiArrayDimension(label=topics.stamp_label(0), size=n, stride=n)
             self._cmd.layout.dim = [self._cmd_dim]
+            self._cmd.data = [0.0] * n
+            self._cmd_raw = SerializedMessage(self._cmd, floats=("data",), texts=("layout.dim.0.label",))
             self._cmd_pub = self.create_publisher(Float64MultiArray, topics.COMMANDS, PUBLISH_QOS)
             self._host = host
         else:
@@ -196,9 +201,10 @@ class SimBridgeNode(Node):
 
     def _publish_applied_command(self) -> None:
         """Composed: the command applied in the last step, labelled with the state it answered."""
-        self._cmd_dim.label = topics.stamp_label(self._host.last_stamp_ns)
-        self._cmd.data = array.array("d", self._host.tau.tobytes())
-        self._cmd_pub.publish(self._cmd)
+        raw = self._cmd_raw
+        raw.set_text("layout.dim.0.label", topics.stamp_label(self._host.last_stamp_ns))
+        raw.floats["data"][:] = self._host.tau
+        self._cmd_pub.publish(raw.payload())
 
     # ------------------------------------------------------------------ commands and steps
     def _on_command_lockstep(self, msg: Float64MultiArray) -> None:
@@ -243,8 +249,8 @@ class SimBridgeNode(Node):
                 self._publish_applied_command()
             self._publish_state()
         if self._clock_pub is not None and steps % self._clock_every == 0:
-            self._clock_msg.clock = _stamp(self.bridge.stamp_ns)
-            self._clock_pub.publish(self._clock_msg)
+            self._clock_raw.set_stamp(self.bridge.stamp_ns)
+            self._clock_pub.publish(self._clock_raw.payload())
         if self._status_every and steps % self._status_every == 0:
             self._publish_task_status()
 
@@ -255,26 +261,26 @@ class SimBridgeNode(Node):
 
     # ------------------------------------------------------------------ publishing
     def _publish_state(self) -> None:
-        env, msg = self.bridge.env, self._state
-        msg.header.stamp = _stamp(self.bridge.stamp_ns)
-        msg.position = array.array("d", env.q.tobytes())
-        msg.velocity = array.array("d", env.dq.tobytes())
-        msg.effort = array.array("d", self.bridge.torque.tobytes())
+        env, raw = self.bridge.env, self._state_raw
+        raw.set_stamp(self.bridge.stamp_ns)
+        raw.floats["position"][:] = env.q
+        raw.floats["velocity"][:] = env.dq
+        raw.floats["effort"][:] = self.bridge.torque
         if self.timing is not None:
             self.timing.published(self.bridge.stamp_ns, time.perf_counter())
-        self._state_pub.publish(msg)
+        self._state_pub.publish(raw.payload())
         self._last_publish = time.monotonic()
 
     def _publish_task_status(self) -> None:
-        env, msg = self.bridge.env, self._task_msg  # one message, refilled: this runs on the driver thread
+        env, raw = self.bridge.env, self._task_raw  # rewritten in place: this runs on the driver thread
         depth = env.insertion_depth
-        msg.insertion_depth = depth
-        msg.success = env.task != "free" and depth >= env.scene.success_depth  # env.success, depth computed once
+        raw.floats["insertion_depth"][0] = depth
+        raw.set_bool("success", env.task != "free" and depth >= env.scene.success_depth)  # env.success, depth once
         force = env.contact_force
-        msg.contact_force = math.sqrt(float(force @ force))
-        msg.header.stamp = _stamp(self.bridge.stamp_ns)
-        msg.part_position = env.x.tolist()
-        self._task_pub.publish(msg)
+        raw.floats["contact_force"][0] = math.sqrt(float(force @ force))
+        raw.set_stamp(self.bridge.stamp_ns)
+        raw.floats["part_position"][:] = env.x
+        self._task_pub.publish(raw.payload())
 
     def _publish_diagnostics(self) -> None:
         b = self.bridge
