@@ -55,3 +55,14 @@ def test_the_spin_leaves_the_gil_to_other_threads():
 def test_bad_spin_is_refused(spin):
     with pytest.raises(ValueError, match="spin"):
         DeadlineWait(spin)
+
+
+@pytest.mark.parametrize("spin", [-1e-4, 0.001])
+def test_sim_bridge_refuses_a_realtime_spin_beyond_half_a_period(spin):
+    from sim_bridge_node.node import PARAMETERS, _check
+
+    params = {name: default for name, (default, _) in PARAMETERS.items()}
+    _check(params)  # the defaults pass
+    params["realtime_spin"] = spin
+    with pytest.raises(ValueError, match="realtime_spin"):
+        _check(params)
