@@ -17,13 +17,15 @@ Phases in the same run, each with fresh processes (own ROS_DOMAIN_ID, loopback o
      must not wait for). The driver times itself: state read -> torque written, tick period, ticks
      starting more than 1 ms late and the longest run of them;
   1b. composed_sleep: the same with ``sim_bridge:realtime_spin:=0`` (each period waited asleep);
+  1c. composed_cold: the same as 1 with ``sim_bridge:realtime_warm:=false`` (no cache warm-up of the
+     controller's compiled step before the spin);
   2. baseline: the sim answered by ``realtime_echo.py`` over DDS (same runtime, no controller work);
   3. controller: the sim answered by the standalone nf_controller over DDS (the ros2_control
      topics path), timed at the sim from publishing state k to receiving its command.
 Writes ``bench/results/realtime.json``. Targets: composed p99 <= 150 us, p99.9 <= 300 us and never
 3 late ticks in a row; topics path (reported): p99 <= 0.5 ms, never 20 misses in a row.
 Usage: python bench/bench_realtime.py [--seconds 600] [--sleep-seconds 60] [--topic-seconds 600]
-       [--baseline-seconds 60] [--floor-seconds 30] [--quick]
+       [--cold-seconds 60] [--baseline-seconds 60] [--floor-seconds 30] [--quick]
 """
 
 from __future__ import annotations
@@ -127,7 +129,9 @@ def run_phase(name: str, seconds: float, domain: int, workdir: Path, log_dir: Pa
     if name.startswith("composed"):
         sim_args = ["-m", "nf_bringup.sim_stack", *sim_args[2:], "-p", "nf_controller:idle_mode:=policy"]
         if name == "composed_sleep":
-            sim_args += ["-p", "sim_bridge:realtime_spin:=0.0"]
+            sim_args += ["-p", "sim_bridge:realtime_spin:=0.0", "-p", "sim_bridge:realtime_warm:=false"]
+        elif name == "composed_cold":
+            sim_args += ["-p", "sim_bridge:realtime_warm:=false"]
         responder = None
     elif name == "baseline":
         sim_args += ["-p", "sim_bridge:driver_gravity_compensation:=true"]
@@ -212,6 +216,8 @@ def main() -> int:
                         help="length of the controller-over-topics phase (s; 0 skips it and the baseline)")
     parser.add_argument("--sleep-seconds", type=float, default=60.0,
                         help="length of the composed phase with each period waited asleep (s; 0 skips it)")
+    parser.add_argument("--cold-seconds", type=float, default=60.0,
+                        help="length of the composed phase without the cache warm-up (s; 0 skips it)")
     parser.add_argument("--baseline-seconds", type=float, default=60.0, help="length of the baseline phase (s)")
     parser.add_argument("--floor-seconds", type=float, default=30.0,
                         help="length of each wake-up floor measurement (s; 0 skips them)")
@@ -221,10 +227,11 @@ def main() -> int:
     args = parser.parse_args()
     if args.quick:
         args.seconds, args.sleep_seconds, args.topic_seconds, args.baseline_seconds = 30.0, 30.0, 30.0, 10.0
+        args.cold_seconds = 30.0
         args.floor_seconds = 10.0
     domain = 100 + os.getpid() % 50
     load_before = os.getloadavg()
-    baseline = controller = composed_sleep = None
+    baseline = controller = composed_sleep = composed_cold = None
     floor = None
     if args.floor_seconds > 0:
         floor = {"asleep": wake_floor(args.floor_seconds, 0.0), "deadline_wait": wake_floor(args.floor_seconds, 3e-4)}
@@ -235,6 +242,9 @@ def main() -> int:
         if args.sleep_seconds > 0:
             composed_sleep = run_phase("composed_sleep", args.sleep_seconds, domain + 3, Path(tmp), log_dir)
             composed_sleep["late_fraction"] = composed_sleep["late_ticks"] / max(composed_sleep["ticks"], 1)
+        if args.cold_seconds > 0:
+            composed_cold = run_phase("composed_cold", args.cold_seconds, domain + 4, Path(tmp), log_dir)
+            composed_cold["late_fraction"] = composed_cold["late_ticks"] / max(composed_cold["ticks"], 1)
         if args.topic_seconds > 0:
             baseline = run_phase("baseline", args.baseline_seconds, domain, Path(tmp), log_dir)
             controller = run_phase("controller", args.topic_seconds, domain + 1, Path(tmp), log_dir)
@@ -245,15 +255,18 @@ def main() -> int:
                      "in its process, and with a responder in a separate process over topics",
         "command": "python bench/bench_realtime.py" + (" --quick" if args.quick else
                                                        f" --seconds {args.seconds:g} --sleep-seconds "
-                                                       f"{args.sleep_seconds:g} --topic-seconds "
+                                                       f"{args.sleep_seconds:g} --cold-seconds "
+                                                       f"{args.cold_seconds:g} --topic-seconds "
                                                        f"{args.topic_seconds:g} --baseline-seconds "
                                                        f"{args.baseline_seconds:g} --floor-seconds "
                                                        f"{args.floor_seconds:g}"),
-        "seconds": {"composed": args.seconds, "composed_sleep": args.sleep_seconds, "controller": args.topic_seconds,
+        "seconds": {"composed": args.seconds, "composed_sleep": args.sleep_seconds, "composed_cold": args.cold_seconds,
+                    "controller": args.topic_seconds,
                     "baseline": args.baseline_seconds, "floor": args.floor_seconds},
         "wake_floor": floor,
         "composed": composed,
         "composed_sleep": composed_sleep,
+        "composed_cold": composed_cold,
         "composed_targets": {"p99_us_max": COMPOSED_P99_US, "late_fraction_max": COMPOSED_LATE_FRACTION,
                              "longest_late_run_max": COMPOSED_LATE_RUN_MAX},
         "composed_met": bool(composed["p99_us"] <= COMPOSED_P99_US and late_fraction <= COMPOSED_LATE_FRACTION
@@ -277,6 +290,10 @@ def main() -> int:
     if composed_sleep:
         print(f"composed, periods waited asleep: p99 {composed_sleep['p99_us']:.0f} us, late ticks "
               f"{100 * composed_sleep['late_fraction']:.3f} %, longest late run {composed_sleep['longest_late_run']}")
+    if composed_cold:
+        print(f"composed, no cache warm-up: p50 {composed_cold['p50_us']:.0f} us (warmed {composed['p50_us']:.0f}), "
+              f"p99 {composed_cold['p99_us']:.0f} us, late ticks {100 * composed_cold['late_fraction']:.3f} %, "
+              f"longest late run {composed_cold['longest_late_run']}")
     if floor:
         print(f"wake-up floor (no work): asleep {100 * floor['asleep']['late_1ms_fraction']:.3f} % of periods more "
               f"than 1 ms late, with DeadlineWait {100 * floor['deadline_wait']['late_1ms_fraction']:.3f} %")

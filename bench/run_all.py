@@ -54,6 +54,11 @@ def _realtime_line(realtime: dict) -> str:
         line += (f"\n   the same, periods waited asleep ({realtime['seconds']['composed_sleep']:.0f} s): p99 "
                  f"{asleep['p99_us']:.0f} us, late ticks {100 * asleep['late_fraction']:.3f} %, longest run "
                  f"{asleep['longest_late_run']}")
+    cold = realtime.get("composed_cold")
+    if cold:
+        line += (f"\n   the same without the cache warm-up ({realtime['seconds']['composed_cold']:.0f} s): median "
+                 f"{cold['p50_us']:.0f} us, p99 {cold['p99_us']:.0f} us, late ticks "
+                 f"{100 * cold['late_fraction']:.3f} %")
     if floor:
         line += (f"\n   this machine's wake-up floor (a loop with no work): more than 1 ms late "
                  f"{100 * floor['asleep']['late_1ms_fraction']:.3f} % asleep, "

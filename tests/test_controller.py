@@ -150,3 +150,23 @@ def test_lyapunov_monitor_counts_rises():
     assert mon.rises == 2
     with pytest.raises(ValueError):
         LyapunovMonitor(dt=0.0)
+
+
+def test_warm_changes_no_torque(arm):
+    """``warm`` (the realtime driver's cache warm-up before it waits) runs the compiled step into
+    scratch buffers: a controller warmed before every step gives bit-identical torques, rate
+    limiter and fault included, to one that is never warmed."""
+    plain, warmed = _controller(arm), _controller(arm)
+    rng = np.random.default_rng(3)
+    q, dq = Q0.copy(), np.zeros(7)
+    for _ in range(50):
+        warmed.warm(q + rng.normal(0, 0.05, 7), rng.normal(0, 0.5, 7))  # any state, even another one
+        a = plain.step(q, dq).copy()
+        b = warmed.step(q, dq).copy()
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(plain.tau_prev, warmed.tau_prev)
+        np.testing.assert_array_equal(plain.xdot, warmed.xdot)
+        q, dq = q + 0.001 * dq + rng.normal(0, 1e-3, 7), dq + rng.normal(0, 0.05, 7)
+    warmed.fault = "latched"
+    warmed.warm(q, dq)  # a latched controller is left alone
+    assert warmed.fault == "latched"

@@ -66,3 +66,16 @@ def test_sim_bridge_refuses_a_realtime_spin_beyond_half_a_period(spin):
     params["realtime_spin"] = spin
     with pytest.raises(ValueError, match="realtime_spin"):
         _check(params)
+
+
+@pytest.mark.parametrize("spin", [0.0, 0.0003])
+def test_before_spin_runs_once_per_wait_before_the_deadline(spin):
+    """The realtime driver's warm-up hook runs once per period, after the sleep (never earlier than
+    ``spin`` before the deadline), and the wait still returns no earlier than the deadline."""
+    waiter = DeadlineWait(spin)
+    calls: list[float] = []
+    deadline = time.perf_counter() + 0.002
+    waiter.wait(deadline, lambda: calls.append(time.perf_counter()))
+    assert len(calls) == 1
+    assert calls[0] >= deadline - spin - 1e-6  # after the sleep, which never ends early
+    assert time.perf_counter() >= deadline

@@ -508,6 +508,15 @@ class ControlLoop:
             self._episode_last = stamp_ns
         return tau
 
+    def warm(self) -> None:
+        """Before a driver waits for its next state: ``FlowController.warm`` at the last valid state,
+        when the flow is what the next tick will run (an episode, or idle_mode "policy")."""
+        if not self.have_state or self.controller.fault:
+            return
+        if self.episode is None and (self.policy is None or self.config.idle_mode != "policy"):
+            return
+        self.controller.warm(self.q, self.dq)
+
     def answers(self, stamp_ns: int) -> bool:
         """False for a state left unanswered: during a reset (``resetting``), and with idle_mode
         "pause" when no episode wants it."""

@@ -120,6 +120,7 @@ class FlowController:
         self.tau_joint = np.zeros(n)  # joint-limit springs' torque of the last step, Nm
         self._q_anchor = np.zeros(n)  # joint position the safe hold's spring pulls to, rad
         self._anchored = False  # False: the next hold with a usable q anchors there
+        self._scratch = [np.zeros(n), np.zeros(3), np.zeros(3), np.zeros(n), np.zeros(n)]  # warm(): outputs
         self.set_law(law or TorqueLawConfig())
         if not self.law.gravity_compensation:
             # The driver compensates gravity (a Franka): the arm gets no command of ours before the
@@ -204,6 +205,24 @@ class FlowController:
             self.fault = "controller produced a non-finite torque"
         self.tau_prev[:] = self.tau
         return self.tau
+
+    def warm(self, q: np.ndarray, dq: np.ndarray) -> None:
+        """Run the compiled part of ``step`` for (q, dq) into scratch buffers, changing nothing the
+        next ``step`` reads (the arm model's cached kinematics are recomputed by every step): for a
+        driver about to wait for its next state, so that the step after the wait finds the model,
+        the flow's weights and the kernels' code in the caches (on this project's VM a step right
+        after a 1 ms sleep takes about 4x as long as in a tight loop)."""
+        args = self._kernel_args
+        if args is None or self.fault:
+            return
+        law = self.law
+        arm = self.arm
+        arm.kinematics(q)
+        tau_prev, xdot, u, tau, tau_joint = self._scratch
+        tau_prev[:] = self.tau_prev
+        tau_joint[:] = self.tau_joint
+        _flow_step(arm.J, arm.R, arm.g, arm.x, dq, self._no_noise, *args, self._gains, law.rotation_ref,
+                   law.torque_limits, tau_prev, xdot, u, tau, tau_joint)
 
     def hold(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
         """Safe-hold torque (no flow): gravity compensation + joint damping + a joint spring

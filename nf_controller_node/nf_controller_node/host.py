@@ -115,6 +115,11 @@ class ControllerHost:
                 future.set_exception(exc)
         return n
 
+    def warm(self) -> None:
+        """Driver thread, before it waits for the next state: ``ControlLoop.warm`` (no effect on
+        the next torque; it only brings the tick's model and kernels back into the caches)."""
+        self.loop.warm()
+
     def wait_for_work(self, timeout: float) -> bool:
         """Sleep until something is posted (or ``timeout`` s pass): for a driver with nothing to tick."""
         if self._inbox:

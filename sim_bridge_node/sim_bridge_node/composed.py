@@ -10,7 +10,9 @@ joint states and the rest). No DDS between state and torque.
   thread sleeps until work is posted.
 - realtime: one step per ``dt`` of wall clock, like a robot's driver; the loop times itself
   (``TickTiming``): state-to-command latency, tick period, ticks that start late. It waits for each
-  period with ``DeadlineWait(spin)``: asleep, then the last ``spin`` s awake without the GIL.
+  period with ``DeadlineWait(spin)``: asleep, then the last ``spin`` s awake without the GIL; with
+  ``warm``, the controller's compiled step runs once on the last state (into scratch buffers) between
+  the two, so the next tick does not start with cold caches.
 
 Episodes (``begin_episode``) reset the world on this thread and start the episode at the reset
 state, exactly as the in-process rollout does.
@@ -41,7 +43,7 @@ class SimDriverLoop:
 
     def __init__(self, bridge: SimBridge, host: ControllerHost, realtime: bool,
                  after_step: Callable[[], None] = lambda: None, keep_timing: bool = False,
-                 spin: float = 0.0) -> None:
+                 spin: float = 0.0, warm: bool = False) -> None:
         if tuple(host.joint_names) != tuple(bridge.joint_names):
             raise ValueError(f"controller joints {host.joint_names} differ from the simulated arm's "
                              f"{list(bridge.joint_names)}")
@@ -51,6 +53,7 @@ class SimDriverLoop:
         self.after_step = after_step
         self.timing = TickTiming(keep_all=keep_timing) if realtime else None
         self._deadline = DeadlineWait(spin if realtime else 0.0)  # realtime: how the loop waits for a period
+        self._warm = host.warm if warm else None  # realtime: the controller's cache warm-up before the spin
         self._success_depth = bridge.env.scene.success_depth
         self.bad_torques = 0  # torques the bridge refused (never expected: the host returns finite ones)
         self.errors: list[str] = []
@@ -134,7 +137,7 @@ class SimDriverLoop:
             due += dt
             wait = due - time.perf_counter()
             if wait > 0.0:
-                self._deadline.wait(due)
+                self._deadline.wait(due, self._warm)
             elif -wait > 10 * dt:  # far behind (a stall): start a new schedule instead of racing
                 timing.resyncs += 1
                 due = time.perf_counter()

@@ -17,6 +17,7 @@ from __future__ import annotations
 import ctypes
 import math
 import time
+from collections.abc import Callable
 
 import numpy as np
 from numba import njit
@@ -54,10 +55,13 @@ class DeadlineWait:
             if abs(now - time.perf_counter_ns()) > 1_000_000:
                 raise RuntimeError("CLOCK_MONOTONIC is not time.perf_counter's clock here: use spin 0")
 
-    def wait(self, deadline: float) -> None:
-        """Sleep until ``spin`` s before ``deadline`` (perf_counter seconds), then spin to it."""
+    def wait(self, deadline: float, before_spin: Callable[[], None] | None = None) -> None:
+        """Sleep until ``spin`` s before ``deadline`` (perf_counter seconds), then spin to it.
+        ``before_spin`` (if given) runs once, between the sleep and the spin (a cache warm-up)."""
         rest = deadline - time.perf_counter() - self.spin
         if rest > 0.0:
             time.sleep(rest)
+        if before_spin is not None:
+            before_spin()
         if self.spin > 0.0:
             _spin_until(int(deadline * 1e9), self._timespec)
