@@ -4,9 +4,11 @@ during the learner's episodes, composed in one process (``nf_sim_stack``, the de
 against the same iteration in process, all in the same run.
 
 Starts the arm (composed, then separate) and the learner (own ROS_DOMAIN_ID, loopback only)
-``--repeats`` times each, every learner doing one iteration, interleaved; then the floor of the
-two-process runtime (``pingpong.py``: a bare rclpy round trip between two processes, no work) and
-the in-process trainer on the same settings. Writes ``bench/results/stack.json``. Targets (issue 13):
+``--repeats`` times each, every learner doing one iteration, interleaved with the in-process
+trainer's same iteration (this machine's speed drifts by up to 2x within minutes: each composed
+iteration is also compared with the in-process one of its own round, ``pairwise_ratios``); then
+the floor of the two-process runtime (``pingpong.py``: a bare rclpy round trip between two
+processes, no work). Writes ``bench/results/stack.json``. Targets (issue 13):
 lockstep >= 10,000 steps/s (composed), an iteration over ROS <= 1.3x the one in process. The
 composed driver loop is also timed with no ROS at all (its ceiling).
 The settings are ``make run``'s (``config/gear_learn.yaml``) unless ``--config`` says otherwise.
@@ -133,6 +135,7 @@ def main() -> int:
     rollouts, seconds, repeats = (3, 1.0, 2) if args.quick else (15, 5.0, args.repeats)
     steps = rollouts * round(seconds / 0.001)
     rows: dict[str, list[dict]] = {"composed": [], "separate": []}
+    local = []  # the in-process iteration, interleaved with the ROS ones: this machine's speed drifts
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(repeats):
             for j, how in enumerate(rows):
@@ -143,6 +146,10 @@ def main() -> int:
                 print(f"over ROS, {how} {k + 1}/{repeats}: rollouts {row['rollout_seconds']:.2f} s "
                       f"({steps / row['rollout_seconds']:.0f} steps/s), update {row['update_seconds']:.2f} s",
                       flush=True)
+            local.append(in_process_iteration(rollouts, seconds, args.config))
+            print(f"in process {k + 1}/{repeats}: rollouts {local[-1]['rollout_seconds']:.2f} s "
+                  f"({steps / local[-1]['rollout_seconds']:.0f} steps/s), wall {local[-1]['wall_seconds']:.2f} s",
+                  flush=True)
     floor = []
     for k in range(repeats):  # the runtime's floor: a bare rclpy round trip between two processes
         env = dict(os.environ, ROS_DOMAIN_ID=str(150 + (os.getpid() + 7 + k) % 50),
@@ -154,8 +161,8 @@ def main() -> int:
               flush=True)
     alone = loop_alone(rollouts, seconds, args.config)
     print(f"composed loop without ROS: median {statistics.median(alone):.0f} steps/s", flush=True)
-    local = [in_process_iteration(rollouts, seconds, args.config) for _ in range(2)]
     rates = [steps / r["rollout_seconds"] for r in rows["composed"]]
+    ratios = [c["wall_seconds"] / i["wall_seconds"] for c, i in zip(rows["composed"], local, strict=True)]
     rates_separate = [steps / r["rollout_seconds"] for r in rows["separate"]]
     ros_wall = statistics.median(r["wall_seconds"] for r in rows["composed"])
     separate_wall = statistics.median(r["wall_seconds"] for r in rows["separate"])
@@ -179,6 +186,7 @@ def main() -> int:
                            "what": "bare rclpy round trip between two processes (bench/pingpong.py), no work"},
         "iteration_wall_s": {"over_ros_median": ros_wall, "in_process_median": local_wall,
                              "ros_over_in_process": ros_wall / local_wall, "target": TARGET_ROS_OVER_IN_PROCESS,
+                             "pairwise_ratios": ratios, "pairwise_ratio_median": statistics.median(ratios),
                              "separate_median": separate_wall, "separate_over_in_process": separate_wall / local_wall,
                              "over_ros_all": [r["wall_seconds"] for r in rows["composed"]],
                              "separate_all": [r["wall_seconds"] for r in rows["separate"]],

@@ -1,7 +1,12 @@
 """Where a Franka tick's time goes, against franky-sim on 127.0.0.1: our side of the tick
 (conversions, ``ControllerHost.tick`` in hold mode, ``Torques``) vs ``writeOnce`` itself; then
-whether ``readOnce`` releases the GIL while it waits for the robot (a counting thread runs during
-the torque loop: its rate against the rate while the main thread sleeps).
+``ControllerHost.tick`` running a flow policy after ``readOnce``'s wait, with and without a cache
+warm-up (``ControllerHost.warm``) just before ``readOnce`` (interleaved blocks), against the same
+tick in a tight loop (the composed realtime sim warms up right before its deadline and gains; here
+the ~0.8 ms wait inside ``readOnce`` follows the warm-up, and it gained nothing consistent in four A/B runs, so the
+driver does not warm up); then whether
+``readOnce`` releases the GIL while it waits for the robot (a counting thread runs during the
+torque loop: its rate against the rate while the main thread sleeps).
 
     python bench/franka_tick_split.py [--ticks 8000]
 
@@ -27,7 +32,9 @@ from franka_driver.robot_model import identify  # noqa: E402
 from franka_driver.simulator import HOST, FrankySim  # noqa: E402
 from nf_controller_node import panda_spec  # noqa: E402
 from nf_controller_node.control_loop import ControlLoop, LoopConfig  # noqa: E402
+from nf_controller_node.flow_spec import FlowArchitecture  # noqa: E402
 from nf_controller_node.host import ControllerHost  # noqa: E402
+from nf_controller_node.policy_params import PolicyParameters  # noqa: E402
 from nf_controller_node.torque_law import TorqueLawConfig  # noqa: E402
 
 
@@ -73,6 +80,34 @@ def main() -> int:
             t1 = perf()
             control.writeOnce(cmd)
             ours[i], write[i] = t1 - t0, perf() - t1
+        # phase 1b: the flow (bench_franka's random policy) with and without the warm-up before readOnce
+        arch = FlowArchitecture(dim=3, n_flow=2, n_hidden=16, activation="gelu")
+        weights = np.random.default_rng(0).uniform(-0.25, 0.25, arch.n_params)
+        x0 = loop.controller.arm.tcp_position(np.asarray(state.q))
+        loop.set_policy(PolicyParameters(arch, weights, np.zeros(1), 300.0 * np.eye(3), 40.0 * np.eye(3), x0,
+                                         version=1))
+        loop.config.idle_mode = "policy"
+        flow: dict[str, list[float]] = {"cold": [], "warm": []}
+        for b in range(8):
+            way = "warm" if b % 2 else "cold"
+            for _ in range(n // 8):
+                if way == "warm":
+                    host.warm()
+                st, _ = control.readOnce()
+                t0 = perf()
+                tau = host.tick(int(st.time.to_sec() * 1e9), np.array(st.q), np.array(st.dq), time.monotonic())
+                flow[way].append(perf() - t0)
+                control.writeOnce(franka.Torques(tau.tolist()))
+        st, _ = control.readOnce()
+        q, dq, stamp = np.array(st.q), np.array(st.dq), int(st.time.to_sec() * 1e9)
+        control.writeOnce(franka.Torques(host.tau.tolist()))
+        tight = np.empty(2000)
+        for i in range(tight.size):  # the same tick back to back (one robot state, new stamps)
+            t0 = perf()
+            host.tick(stamp + i + 1, q, dq, time.monotonic())
+            tight[i] = perf() - t0
+        st, _ = control.readOnce()  # back to the robot before its watchdog notices the pause
+        control.writeOnce(franka.Torques(host.tau.tolist()))
         thread = threading.Thread(target=counter, daemon=True)
         thread.start()
         counting.set()
@@ -91,6 +126,9 @@ def main() -> int:
     skip = min(500, n // 10)
     print(f"our side of the tick  {_pcts(ours[skip:])}")
     print(f"writeOnce             {_pcts(write[skip:])}")
+    print(f"flow tick, cold       {_pcts(np.array(flow['cold']))}")
+    print(f"flow tick, warm       {_pcts(np.array(flow['warm']))}   (host.warm() before readOnce)")
+    print(f"flow tick, tight loop {_pcts(tight[100:])}")
     print(f"counting thread: {in_loop:,.0f}/s during the torque loop vs {idle:,.0f}/s while the main thread "
           f"sleeps ({in_loop / idle:.0%}): readOnce {'releases' if in_loop > 0.3 * idle else 'does not release'} "
           f"the GIL while it waits")
