@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import array
+import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from learner_node.config import TrainConfig, parse_value, read_yaml_params
@@ -112,3 +115,22 @@ def test_gear_learn_yaml_is_gear_yaml_with_the_documented_sets():
     learn = TrainConfig.from_sources(CONFIG_DIR / "gear_learn.yaml")
     assert learn == TrainConfig.from_sources(CONFIG_DIR / "gear.yaml", sets)
     assert learn.stiffness_matrix().tolist() == [[300.0, 0.0, 0.0], [0.0, 300.0, 0.0], [0.0, 0.0, 300.0]]
+
+
+def test_goal_sets_the_policys_x_ref_and_the_reward_goal():
+    """A goal measured on a real cell (``goal``) replaces the simulated task's: the policy the learner
+    publishes carries it as x_ref (the controller's reward goal too), and so does the in-process
+    rollout's reward. From a command line, a ROS array parameter or a YAML list; bad ones refused."""
+    from learner_node.trainer import Trainer
+
+    default = Trainer(TrainConfig.from_sources(CONFIG_DIR / "gear_learn.yaml"))
+    assert default.cfg.goal is None
+    np.testing.assert_allclose(default.policy.to_params().x_ref, [0.5, 0.0, 0.07])
+    for given in ("0.52,0.03,0.05", "[0.52, 0.03, 0.05]", [0.52, 0.03, 0.05], array.array("d", [0.52, 0.03, 0.05])):
+        assert TrainConfig.from_sources(None, {"task": "gear", "goal": given}).goal == [0.52, 0.03, 0.05]
+    trainer = Trainer(TrainConfig.from_sources(CONFIG_DIR / "gear_learn.yaml", {"goal": "0.52,0.03,0.05"}))
+    np.testing.assert_allclose(trainer.policy.to_params().x_ref, [0.52, 0.03, 0.05])
+    np.testing.assert_allclose(trainer.runner.episode_spec(None).x_goal, [0.52, 0.03, 0.05])
+    for bad, message in (("0.5,0", "3 values"), ("a,b,c", "list of numbers"), ([0.5, 0.0, math.nan], "finite")):
+        with pytest.raises(ValueError, match=message):
+            TrainConfig.from_sources(None, {"task": "gear", "goal": bad})

@@ -145,6 +145,11 @@ class TrainConfig:
     """Reward weight of the squared action force |u|^2 (N)."""
     eval_episodes: int = 10
     """Final evaluation: episodes of the deterministic controller from held-out starts (1 if start=fixed)."""
+    goal: list[float] | None = None
+    """The controller's x_ref and the reward's goal, m in the robot's base frame (3 values; block: x, z).
+    None: the simulated task's goal (gear and peg [0.5, 0, 0.07]). On a real cell, the goal measured
+    there (the Franka driver's ``goal``): the simulated one would aim at wherever the simulated
+    fixture happens to be."""
 
     def __post_init__(self) -> None:
         self._coerce_types()
@@ -205,6 +210,8 @@ class TrainConfig:
         _int_range("update_epochs", self.update_epochs, 1, 10_000)
         _int_range("minibatch_size", self.minibatch_size, 1, 10_000_000)
         _int_range("eval_episodes", self.eval_episodes, 0, 100_000)
+        if self.goal is not None and len(self.goal) != self.dim:
+            raise ValueError(f"goal must have {self.dim} values (m) for the {self.task} task, got {self.goal}")
         if not 0.0 < self.clip_coef < 1.0:
             raise ValueError(f"clip_coef must be in (0, 1), got {self.clip_coef}")
         for name in ("gamma", "gae_lambda"):
@@ -341,6 +348,8 @@ def parse_value(name: str, text: str) -> Any:
     if _allows_none(hint) and text.strip().lower() in ("none", "null", "~", ""):
         return None
     base = _base_type(hint)
+    if typing.get_origin(base) is list:  # "0.5,0,0.05" or "[0.5, 0, 0.05]"
+        return [part.strip() for part in text.strip().strip("[]").split(",") if part.strip()]
     try:
         if base is int:
             return int(text)
@@ -374,6 +383,14 @@ def _coerce(name: str, value: Any, hint: Any) -> Any:
         return value
     if base is str and isinstance(value, str):
         return value
+    if typing.get_origin(base) is list and not isinstance(value, str | bytes | dict):
+        try:
+            items = [float(v) for v in value]
+        except (TypeError, ValueError):
+            raise ValueError(f"{name} must be a list of numbers, got {value!r}") from None
+        if not all(math.isfinite(v) for v in items):
+            raise ValueError(f"{name} must be finite, got {items}")
+        return items
     raise ValueError(f"{name} must be {base.__name__}, got {value!r} ({type(value).__name__})")
 
 

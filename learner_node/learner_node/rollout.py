@@ -93,6 +93,8 @@ class RolloutRunner:
             # the controller's arm model carries the same part (mass, TCP) as the simulated hand
             self.arm = ArmModel(part=panda_spec.held_part_by_name("peg" if cfg.task == "peg" else "gear"))
             self.x_ref = self.goal.copy()
+        if cfg.goal is not None:  # a goal measured on a real cell: the policy's x_ref and the reward's goal
+            self.x_ref = np.asarray(cfg.goal, dtype=np.float64)
 
     def start_seed(self, seed: int | None) -> int | None:
         """The reset seed actually used (None for fixed starts)."""
