@@ -78,30 +78,39 @@ def in_process_iteration(rollouts: int, seconds: float, config: Path = CONFIG) -
     return trainer.train_iteration()
 
 
+def gear_host(config: Path, idle_mode: str, overrides: dict | None = None) -> tuple:
+    """(TrainConfig, InsertionEnv, ControllerHost) of ``config``'s task, no ROS: the controller loop
+    (``idle_mode``, no miss latch) running the untrained policy as version 1."""
+    from learner_node.config import TrainConfig
+    from learner_node.trainer import Trainer
+    from nf_controller_node.arm_model import ArmModel
+    from nf_controller_node.control_loop import ControlLoop, LoopConfig
+    from nf_controller_node.host import ControllerHost
+    from sim_bridge_node.env import InsertionEnv
+
+    cfg = TrainConfig.from_sources(config, overrides or {})
+    env = InsertionEnv(cfg.task)
+    params = Trainer(cfg).policy.to_params()
+    params.version = 1
+    loop = ControlLoop(ArmModel(part=env.scene.held_part), config=LoopConfig(idle_mode=idle_mode,
+                                                                             max_consecutive_misses=0))
+    loop.set_policy(params)
+    return cfg, env, ControllerHost(loop)
+
+
 def loop_alone(rollouts: int, seconds: float, config: Path = CONFIG) -> list[float]:
     """Steps/s of each episode of the composed driver loop with no ROS at all (``SimDriverLoop`` +
     ``ControllerHost`` on a thread, episodes started and drained by hand): the ceiling of the
     composed stack, what ROS's slow side and publishing take from it."""
     import threading
 
-    from learner_node.config import TrainConfig
-    from learner_node.trainer import Trainer
-    from nf_controller_node.arm_model import ArmModel
-    from nf_controller_node.control_loop import ControlLoop, LoopConfig
     from nf_controller_node.episode import EpisodeRun, EpisodeSpec
-    from nf_controller_node.host import EPISODE_END, ControllerHost
+    from nf_controller_node.host import EPISODE_END
     from sim_bridge_node.bridge import SimBridge
     from sim_bridge_node.composed import SimDriverLoop
-    from sim_bridge_node.env import InsertionEnv
 
-    cfg = TrainConfig.from_sources(config, {"rollouts_per_iter": rollouts, "episode_seconds": seconds})
-    env = InsertionEnv(cfg.task)
-    params = Trainer(cfg).policy.to_params()
-    params.version = 1
-    loop = ControlLoop(ArmModel(part=env.scene.held_part), config=LoopConfig(idle_mode="pause",
-                                                                             max_consecutive_misses=0))
-    loop.set_policy(params)
-    host = ControllerHost(loop)
+    cfg, env, host = gear_host(config, "pause", {"rollouts_per_iter": rollouts, "episode_seconds": seconds})
+    params = host.loop.policy
     driver = SimDriverLoop(SimBridge(env), host, realtime=False)
     stop = threading.Event()
     thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)

@@ -31,33 +31,18 @@ CONFIG = HERE.parent / "config" / "gear_learn.yaml"
 PERIOD = 0.001
 
 
-def _host():
-    from learner_node.config import TrainConfig
-    from learner_node.trainer import Trainer
-    from nf_controller_node.arm_model import ArmModel
-    from nf_controller_node.control_loop import ControlLoop, LoopConfig
-    from nf_controller_node.host import ControllerHost
-    from sim_bridge_node.env import InsertionEnv
-
-    cfg = TrainConfig.from_sources(CONFIG, {})
-    env = InsertionEnv(cfg.task)
-    params = Trainer(cfg).policy.to_params()
-    params.version = 1
-    loop = ControlLoop(ArmModel(part=env.scene.held_part), config=LoopConfig(idle_mode="policy",
-                                                                             max_consecutive_misses=0))
-    loop.set_policy(params)
-    return ControllerHost(loop), env.q, env.dq
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ticks", type=int, default=3000, help="ticks per block")
     parser.add_argument("--blocks", type=int, default=4, help="interleaved blocks per way of waiting")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "cold_tick.json")
     args = parser.parse_args()
+    from bench_stack import gear_host
+
     from sim_bridge_node.deadline_wait import DeadlineWait
 
-    host, q, dq = _host()
+    _, env, host = gear_host(CONFIG, "policy")
+    q, dq = env.q, env.dq
     spin = DeadlineWait(3e-4)
     perf = time.perf_counter
     stamp = [0]
