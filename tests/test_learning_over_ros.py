@@ -178,6 +178,29 @@ def test_a_latched_fault_makes_the_learner_wait_for_a_person_and_go_on_without_l
     assert_same_learning(metrics, in_process_history(1, settings))
 
 
+def test_learner_goal_parameter_reaches_the_published_policy_over_dds(tmp_path):
+    """``-p learner_node:goal:=[...]`` as docs/hardware.md writes it (a goal measured on a real cell):
+    the policy the learner publishes over DDS aims at it (x_ref) and its config.json keeps it; a goal
+    of the wrong length stops the learner with exit code 2 and a message naming the setting."""
+    domain = allocate_domain_id()
+    probe = Probe(domain)
+    policies = probe.collect(PolicyParametersMsg, "/policy_parameters", LATCHED)
+    goal = [0.52, 0.03, 0.05]
+    common = ["-m", "learner_node.node", "--ros-args", "--params-file", str(REPO / "config" / "gear_learn.yaml"),
+              "-p", f"learner_node:out_dir:={tmp_path / 'run'}", "-p", "learner_node:server_timeout:=60.0"]
+    try:
+        with RosProcess([*common, "-p", "learner_node:goal:=[0.52,0.03,0.05]"], domain,
+                        tmp_path / "learner.log") as lrn:  # no arm: it publishes, then waits for the server
+            assert probe.spin_until(lambda: bool(policies), 90), lrn.log()
+            assert list(policies[0][1].x_ref) == pytest.approx(goal)
+            assert json.loads((tmp_path / "run" / "config.json").read_text())["goal"] == pytest.approx(goal)
+    finally:
+        probe.close()
+    with RosProcess([*common, "-p", "learner_node:goal:=[0.5,0.0]"], domain, tmp_path / "bad.log") as bad:
+        assert wait_exit(bad, 90) == 2, bad.log()
+        assert "goal" in bad.log()
+
+
 def test_learner_killed_mid_iteration_holds_the_arm_and_resumes_without_losing_an_iteration(tmp_path):
     domain = allocate_domain_id()
     # 8 rollouts: since the composed stack got faster an iteration of 4 x 0.5 s took 1.7 s and once
