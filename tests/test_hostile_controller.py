@@ -176,6 +176,22 @@ def test_absurd_velocity_faults_and_never_drives_the_hold(arm, idle_mode):
     np.testing.assert_allclose(tau, g, atol=1e-6)  # the hold of the last valid state: gravity, no saturation
 
 
+def test_rejection_keeps_the_values_of_the_rejected_state_not_of_the_drivers_buffer(arm):
+    """A hosting driver may pass views of its own state buffers (the composed sim passes MuJoCo's
+    arrays) and rewrite them before anyone reads why a state was rejected: the report must show the
+    rejected values, not whatever the buffer holds later."""
+    loop = _loop(arm)
+    names = tuple(NAMES)
+    q, dq = Q0.copy(), REST.copy()
+    loop.on_joint_state(names, q, dq, 1_000_000, 0.0)
+    dq[3] = 1e6
+    loop.on_joint_state(names, q, dq, 2_000_000, 0.0)  # latches the hold (text formatted now)
+    dq[3] = 2e6
+    loop.on_joint_state(names, q, dq, 3_000_000, 0.0)  # rejected again: the text is formatted when read
+    dq[3] = 0.5  # the driver's next (plausible) state, written into the same buffer
+    assert "2e+06" in loop.last_rejection and "panda_joint4" in loop.last_rejection
+
+
 def _mid_limits() -> np.ndarray:
     return 0.5 * (panda_spec.Q_MIN + panda_spec.Q_MAX)
 

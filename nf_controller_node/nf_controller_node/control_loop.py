@@ -430,7 +430,8 @@ class ControlLoop:
             return self._reject(("order", stamp_ns, self._last_stamp))
         problem = state_problem(q, dq, self.q_min, self.q_max, self.dq_max)
         if problem:
-            return self._reject(("value", problem, q, dq))
+            # copies: q and dq may be views of the driver's buffers, rewritten before the text is read
+            return self._reject(("value", problem, q.copy(), dq.copy()))
         self._last_stamp = stamp_ns
         had_fault = ctrl.fault
         run = self.episode
