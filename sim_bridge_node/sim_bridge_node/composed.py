@@ -55,6 +55,8 @@ class SimDriverLoop:
         self._deadline = DeadlineWait(spin if realtime else 0.0)  # realtime: how the loop waits for a period
         self._warm = host.warm if warm else None  # realtime: the controller's cache warm-up before the spin
         self._success_depth = bridge.env.scene.success_depth
+        # the state the tick reads: views into MuJoCo's arrays (the host copies what it keeps)
+        self._state = bridge.env.state_views()
         self.bad_torques = 0  # torques the bridge refused (never expected: the host returns finite ones)
         self.errors: list[str] = []
 
@@ -91,7 +93,8 @@ class SimDriverLoop:
         run = host.loop.episode
         if (run.steps % run.P == 0) if run is not None else bridge.steps % TASK_EVERY == 0:
             self._report_task()
-        return host.tick(stamp_ns, env.q, env.dq, now)
+        q, dq = self._state or (env.q, env.dq)
+        return host.tick(stamp_ns, q, dq, now)
 
     def _run_lockstep(self, stop: threading.Event) -> None:
         bridge, host = self.bridge, self.host

@@ -224,6 +224,14 @@ class InsertionEnv:
         """Joint velocities."""
         return self.data.qvel[: self.nq].copy() if self._contiguous else self.data.qvel[self._vadr]
 
+    def state_views(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(q, dq) as views into the simulator's state, which every step and reset rewrite in place
+        (None when the joints are not contiguous): for a caller that reads them before the next step
+        and keeps no reference, without the copies of ``q`` and ``dq``."""
+        if not self._contiguous:
+            return None
+        return self.data.qpos[: self.nq], self.data.qvel[: self.nq]
+
     @property
     def x(self) -> np.ndarray:
         """TCP position in the world frame (m)."""
