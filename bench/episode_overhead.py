@@ -10,7 +10,7 @@ policy, same start seed) run by the composed driver loop (``SimDriverLoop`` + ``
 lockstep, no publishing), and reports each pair's ratio of wall time and of thread CPU time per step.
 Pairs close in time share the machine's speed, so their ratio is steadier than the two totals'.
 
-Usage: python bench/episode_overhead.py [--pairs 12] [--seconds 5]
+Usage: python bench/episode_overhead.py [--pairs 12] [--seconds 5] [--quick]
 Writes bench/results/episode_overhead.json.
 """
 
@@ -36,7 +36,10 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=5.0, help="simulated seconds per episode")
     parser.add_argument("--config", type=Path, default=CONFIG)
     parser.add_argument("--out", type=Path, default=HERE / "results" / "episode_overhead.json")
+    parser.add_argument("--quick", action="store_true", help="4 pairs of 1 s episodes")
     args = parser.parse_args()
+    if args.quick:
+        args.pairs, args.seconds = 4, 1.0
 
     from learner_node.rollout import RolloutRunner
     from nf_controller_node.episode import EpisodeRun, EpisodeSpec

@@ -128,6 +128,13 @@ def main() -> int:
                     line += f"; stable-baselines3 PPO SKIPPED: {s['sb3_skipped']}"
             print(line)
     quick = ["--quick"] if args.quick else []
+    overhead = _run("episode_overhead", [sys.executable, str(HERE / "episode_overhead.py"), *quick])
+    if overhead is None:
+        failed.append("episode_overhead")
+    else:
+        w = overhead["wall_ratio"]
+        print(f"   composed loop (no ROS) over the in-process rollout, same episodes: median {w['median']:.3f}x "
+              f"(quartiles {w['p25']:.3f}-{w['p75']:.3f}, {len(w['all'])} pairs)")
     for name, script, summary in _ROS_BENCHMARKS:
         result = _run(name, [sys.executable, str(HERE / script), *quick])
         if result is None:
