@@ -70,6 +70,25 @@ def test_same_seed_gives_bit_identical_trajectory(gear_env):
     np.testing.assert_array_equal(fixed, _rollout(gear_env, seed=-3, steps=50))
 
 
+@pytest.mark.parametrize("task", TASKS)
+def test_state_views_follow_every_step_and_reset(task):
+    """``state_views`` (what the composed tick reads instead of two copies) are MuJoCo's own q and
+    dq: equal to the copies, rewritten in place by each step and reset, never stale."""
+    env = InsertionEnv(task)
+    views = env.state_views()
+    if views is None:
+        pytest.skip(f"{task}: joints not contiguous in MuJoCo's arrays (callers use the copies)")
+    q, dq = views
+    env.reset(seed=3)
+    for _ in range(5):
+        np.testing.assert_array_equal(q, env.q)
+        np.testing.assert_array_equal(dq, env.dq)
+        env.step(np.zeros(env.nu))
+    start = env.reset(seed=4).q
+    np.testing.assert_array_equal(q, start)  # still the live state after a reset
+    assert np.shares_memory(q, env.data.qpos) and np.shares_memory(dq, env.data.qvel)
+
+
 def test_different_seeds_give_different_starts(gear_env, block_env):
     for env in (gear_env, block_env):
         starts = np.array([env.reset(seed=s).q for s in range(10)])
