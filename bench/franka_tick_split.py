@@ -8,7 +8,10 @@ driver does not warm up); then whether
 ``readOnce`` releases the GIL while it waits for the robot (a counting thread runs during the
 torque loop: its rate against the rate while the main thread sleeps).
 
-    python bench/franka_tick_split.py [--ticks 8000]
+``--pin``: franky-sim's threads on CPU 0, this loop on CPU 1 (the tick gets a core the simulator
+does not use; the GIL-counting phase is skipped, its thread would share that core).
+
+    python bench/franka_tick_split.py [--ticks 8000] [--pin]
 
 A probe for docs/hardware.md, not a target benchmark (that is ``bench_franka.py``).
 """
@@ -17,6 +20,8 @@ from __future__ import annotations
 
 import argparse
 import gc
+import os
+import subprocess
 import sys
 import threading
 import time
@@ -47,10 +52,14 @@ def _pcts(values: np.ndarray) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ticks", type=int, default=8000)
+    parser.add_argument("--pin", action="store_true", help="franky-sim on CPU 0, the torque loop on CPU 1")
     args = parser.parse_args()
     import pylibfranka as franka
 
-    with TemporaryDirectory() as tmp, FrankySim(Path(tmp) / "franky-sim.log"):
+    with TemporaryDirectory() as tmp, FrankySim(Path(tmp) / "franky-sim.log") as sim:
+        if args.pin:
+            subprocess.run(["taskset", "-a", "-p", "-c", "0", str(sim.pid)], check=True, stdout=subprocess.DEVNULL)
+            os.sched_setaffinity(0, {1})  # this (main) thread, which runs the torque loop
         robot = franka.Robot(HOST, franka.RealtimeConfig.kIgnore)
         state = robot.read_once()
         spec = identify("auto", state, robot.load_model()).spec
@@ -108,27 +117,33 @@ def main() -> int:
             tight[i] = perf() - t0
         st, _ = control.readOnce()  # back to the robot before its watchdog notices the pause
         control.writeOnce(franka.Torques(host.tau.tolist()))
-        thread = threading.Thread(target=counter, daemon=True)
-        thread.start()
-        counting.set()
-        t0, c0 = perf(), count[0]
-        for _ in range(n // 4):  # phase 2: the counting thread runs during the torque loop
-            st, _ = control.readOnce()
-            tau = host.tick(int(st.time.to_sec() * 1e9), np.array(st.q), np.array(st.dq), time.monotonic())
-            control.writeOnce(franka.Torques(tau.tolist()))
-        in_loop = (count[0] - c0) / (perf() - t0)
+        in_loop = idle = 0.0
+        if not args.pin:  # phase 2: the counting thread runs during the torque loop
+            thread = threading.Thread(target=counter, daemon=True)
+            thread.start()
+            counting.set()
+            t0, c0 = perf(), count[0]
+            for _ in range(n // 4):
+                st, _ = control.readOnce()
+                tau = host.tick(int(st.time.to_sec() * 1e9), np.array(st.q), np.array(st.dq), time.monotonic())
+                control.writeOnce(franka.Torques(tau.tolist()))
+            in_loop = (count[0] - c0) / (perf() - t0)
         robot.stop()
-        t0, c0 = perf(), count[0]
-        time.sleep(2.0)  # baseline: the main thread sleeps (GIL released)
-        idle = (count[0] - c0) / (perf() - t0)
-        done.set()
-        thread.join(2.0)
+        if not args.pin:
+            t0, c0 = perf(), count[0]
+            time.sleep(2.0)  # baseline: the main thread sleeps (GIL released)
+            idle = (count[0] - c0) / (perf() - t0)
+            done.set()
+            thread.join(2.0)
     skip = min(500, n // 10)
     print(f"our side of the tick  {_pcts(ours[skip:])}")
     print(f"writeOnce             {_pcts(write[skip:])}")
     print(f"flow tick, cold       {_pcts(np.array(flow['cold']))}")
     print(f"flow tick, warm       {_pcts(np.array(flow['warm']))}   (host.warm() before readOnce)")
     print(f"flow tick, tight loop {_pcts(tight[100:])}")
+    if args.pin:
+        print("pinned: franky-sim on CPU 0, the torque loop on CPU 1 (GIL-counting phase skipped)")
+        return 0
     print(f"counting thread: {in_loop:,.0f}/s during the torque loop vs {idle:,.0f}/s while the main thread "
           f"sleeps ({in_loop / idle:.0%}): readOnce {'releases' if in_loop > 0.3 * idle else 'does not release'} "
           f"the GIL while it waits")
