@@ -7,7 +7,9 @@ way a driver can wait for its next period, in interleaved blocks of one process 
 - ``deadline_wait``: after ``DeadlineWait(0.3 ms)`` (asleep, then awake without the GIL), as the
   composed realtime sim waits with ``realtime_warm: false``;
 - ``deadline_wait_warm``: the same with the controller's cache warm-up before the spin
-  (``ControllerHost.warm``), as it waits by default.
+  (``ControllerHost.warm``), as it waits by default;
+- ``awake``: ``DeadlineWait`` spinning the whole period without the GIL (the thread never sleeps;
+  it costs a whole core).
 
     python bench/cold_tick.py [--ticks 3000] [--blocks 4]
 
@@ -44,6 +46,7 @@ def main() -> int:
     _, env, host = gear_host(CONFIG, "policy")
     q, dq = env.q, env.dq
     spin = DeadlineWait(3e-4)
+    awake = DeadlineWait(PERIOD)  # the whole period awake: the thread never sleeps
     perf = time.perf_counter
     stamp = [0]
 
@@ -64,10 +67,12 @@ def main() -> int:
                 spin.wait(due)
             elif way == "deadline_wait_warm":
                 spin.wait(due, host.warm)
+            elif way == "awake":
+                awake.wait(due)
             out[i] = tick()
         return out
 
-    ways = ("tight", "asleep", "deadline_wait", "deadline_wait_warm")
+    ways = ("tight", "asleep", "deadline_wait", "deadline_wait_warm", "awake")
     samples: dict[str, list[np.ndarray]] = {w: [] for w in ways}
     block("tight", 500)  # compiled and warm before anything is timed
     gc.collect()
