@@ -203,9 +203,10 @@ def test_learner_goal_parameter_reaches_the_published_policy_over_dds(tmp_path):
 
 def test_learner_killed_mid_iteration_holds_the_arm_and_resumes_without_losing_an_iteration(tmp_path):
     domain = allocate_domain_id()
-    # 8 rollouts: since the composed stack got faster an iteration of 4 x 0.5 s took 1.7 s and once
-    # ended before the kill (a fresh-clone CI run); the kill now also follows the first sign at once
-    settings = {**SHORT, "rollouts_per_iter": 8}
+    # The kill must land inside iteration 2, so an iteration has to outlast the probe's reaction on a
+    # busy machine: with 8 rollouts of 0.5 s the composed stack ran one in 0.37 s and a fresh-clone CI
+    # run killed the learner after iteration 2 had finished. 32 rollouts take several seconds.
+    settings = {**SHORT, "rollouts_per_iter": 32}
     probe = Probe(domain)
     status = probe.collect(ControllerStatus, "controller_status", RELIABLE)
     states = probe.collect(JointState, "joint_states", RELIABLE, convert=lambda m: np.array(m.velocity))
@@ -219,12 +220,14 @@ def test_learner_killed_mid_iteration_holds_the_arm_and_resumes_without_losing_a
         assert probe.spin_until(lambda: status and status[-1][1].mode != MODE_IDLE, 30)  # iteration 2 is running
         first.proc.send_signal(signal.SIGKILL)
         first.proc.wait(10)
+        finished = len(json.loads(metrics.read_text()))
+        assert finished == 1, f"the kill came after iteration 2 had ended ({finished} iterations): too late to test"
         # the running episode ends (0.5 s simulated) and the arm is held: velocities die out
         assert probe.spin_until(lambda: status[-1][1].mode == MODE_IDLE, 30), logs(arm)
         # lockstep: simulated time passes only as fast as this (possibly busy) machine runs the loop
         assert probe.spin_until(lambda: np.abs(states[-1][1]).max() < 1e-2, 30), states[-1][1]
         assert status[-1][1].mode == MODE_IDLE and not status[-1][1].fault
-        assert len(json.loads(metrics.read_text())) == 1  # iteration 2 never finished
+        assert len(json.loads(metrics.read_text())) == 1  # iteration 2 never finished (nor will it)
         second = learner(domain, run, tmp_path / "learner2.log", 3, settings)
         assert wait_exit(second, 300) == 0, second.log()
         assert "resuming from" in second.log() and "after iteration 1" in second.log()
