@@ -86,6 +86,8 @@ def test_stack_runs_an_iteration_and_leaves_a_complete_run_folder(tmp_path):
     assert (run / "final_policy.gif").stat().st_size > 10_000
     summary = (run / "summary.md").read_text()
     assert "| 1 |" in summary and "Bag `bag/` (closed" in summary
+    # the update takes milliseconds: in seconds with one decimal it read 0.0 for every iteration
+    assert f"| {1e3 * metrics[0]['update_seconds']:.0f} |" in summary and "update (ms)" in summary
     # the bag holds the run: closed cleanly, the two rollouts streamed by the controller, the policy
     health = bagfile.scan(run / "bag")
     assert health.closed and not health.lost

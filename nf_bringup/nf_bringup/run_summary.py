@@ -22,12 +22,12 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
                   f"seed {cfg.get('seed')}, {cfg.get('rollouts_per_iter')} rollouts of {cfg.get('episode_seconds')} s "
                   "per iteration.", ""]
     if metrics:
-        lines += ["| iteration | return | success | final distance (m) | torque (Nm) | rollouts (s) | update (s) |",
+        lines += ["| iteration | return | success | final distance (m) | torque (Nm) | rollouts (s) | update (ms) |",
                   "|---|---|---|---|---|---|---|"]
         for r in metrics:
             lines.append(f"| {int(r['iteration'])} | {r['return_mean']:.1f} | {r['success_rate']:.2f} | "
                          f"{r['final_distance_mean']:.4f} | {r['torque_norm_mean']:.2f} | {r['rollout_seconds']:.1f} | "
-                         f"{r['update_seconds']:.1f} |")
+                         f"{1e3 * r['update_seconds']:.0f} |")
         lines.append("")
     else:
         lines += ["No iteration completed.", ""]
