@@ -3,7 +3,8 @@
 Built once from the example-robot-data URDF (the file MuJoCo loads too): finger joints locked,
 the held part's inertia appended to joint 7 (the gear by default), a ``gear_tcp`` frame at the
 part's tool-centre point, rotor armature on the joints. ``update(q, dq)`` then only computes
-(no allocation of model data).
+(no allocation of model data). The per-tick part (TCP pose, Jacobian, gravity) runs in one compiled
+call (``serial_chain``) when the model is a serial revolute chain, as the Panda and the FR3 are.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import numpy as np
 import pinocchio as pin
 
 from . import panda_spec
+from .serial_chain import SerialChain, chain_kinematics
 
 
 class ArmModel:
@@ -70,19 +72,23 @@ class ArmModel:
         self.x = np.zeros(3)  # TCP position in the base frame, m
         self.xdot = np.zeros(3)  # TCP linear velocity, m/s
         self.R = np.eye(3)  # hand orientation in the base frame
+        self.chain = SerialChain.from_pinocchio(model, self.tcp_id)  # None: Pinocchio computes each tick
+        self.chain_args = self.chain.args if self.chain is not None else ()  # for fused compiled callers
 
     def update(self, q: np.ndarray, dq: np.ndarray) -> None:
         """Compute TCP pose, velocity, Jacobian and gravity torque for joint state (q [rad], dq [rad/s]).
 
-        Rebinds the attributes to Pinocchio's results, which are views into its data (no copies:
-        each small numpy operation costs about a microsecond at 1 kHz); they stay valid until the
-        next call into this model. Copy what you keep.
+        The attributes are rewritten in place (with Pinocchio for a model that is not a serial chain:
+        rebound to views into its data); they stay valid until the next call. Copy what you keep.
         """
         self.kinematics(q)
         self.xdot = self.J[:3] @ dq
 
     def kinematics(self, q: np.ndarray) -> None:
         """Like ``update`` without the TCP velocity (``xdot`` is left as it was)."""
+        if self.chain is not None:
+            chain_kinematics(q, *self.chain_args, self.J, self.x, self.R, self.g)
+            return
         model, data, fid = self.model, self.data, self.tcp_id
         pin.computeJointJacobians(model, data, q)
         oMtcp = pin.updateFramePlacement(model, data, fid)

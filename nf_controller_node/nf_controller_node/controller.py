@@ -1,7 +1,9 @@
 """The 1 kHz controller step: joint state -> flow force -> joint torque, with safe hold on faults.
 
-ROS-free; the node feeds it joint states and publishes what it returns. One ``step`` costs
-a Pinocchio update, one compiled flow call and one compiled torque-law call.
+ROS-free; the node feeds it joint states and publishes what it returns. With a flow policy and
+a serial-chain arm model, one ``step`` is one compiled call (state check, kinematics, joint-limit
+springs, flow force, torque law): each call from Python costs a few microseconds more right after
+a 1 ms wait than back to back, so a 1 kHz driver pays per call, not only per operation.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from numba import njit
 
 from .arm_model import ArmModel
 from .flow_eval import FlowEvaluator, force_kernel
+from .serial_chain import chain_kinematics
 from .torque_law import (
     NOT_FINITE,
     TorqueLawConfig,
@@ -92,6 +95,31 @@ def _flow_step(J, R, g, x, dq, noise, wp, layout, code, consts, work, gains, R_r
                              tau_prev, limits, gains[4], tau, tau_joint)
 
 
+_STATE_FAULT = -100  # _flow_tick: _STATE_FAULT - code for an unusable state (codes of _state_fault)
+
+
+@njit(cache=True)
+def _flow_tick(q, dq, noise, q_sane, joint_rot, joint_pos, axis, mass, com, tcp_rot, tcp_pos, gravity, o_rot, o_pos,
+               J, x, R, g, wp, layout, code, consts, work, gains, R_ref, limits, q_lo, q_hi, tau_prev, xdot, u,
+               tau, tau_joint):
+    """``FlowController.step`` for a usable state in one compiled call: state check, the arm's
+    kinematics (``chain_kinematics`` into J, x, R, g), the joint-limit springs (stiffness gains[5]),
+    ``_flow_step``, and tau_prev = tau. Returns the torque law's flags, _FLOW_FAILED, or
+    _STATE_FAULT - code when (q, dq) is unusable (nothing written)."""
+    fault = _state_fault(q, dq, q_sane, np.inf)
+    if fault != 0:
+        return _STATE_FAULT - fault
+    chain_kinematics(q, joint_rot, joint_pos, axis, mass, com, tcp_rot, tcp_pos, gravity, o_rot, o_pos, J, x, R, g)
+    if gains[5] > 0.0:
+        joint_limit_torque(q, q_lo, q_hi, gains[5], tau_joint)
+    flags = _flow_step(J, R, g, x, dq, noise, wp, layout, code, consts, work, gains, R_ref, limits, tau_prev, xdot,
+                       u, tau, tau_joint)
+    if flags != _FLOW_FAILED:
+        for j in range(tau.shape[0]):
+            tau_prev[j] = tau[j]
+    return flags
+
+
 class FlowController:
     """Stable flow controller for the Panda. ``step(q, dq)`` returns the joint torque to command.
 
@@ -141,7 +169,7 @@ class FlowController:
         self.tau_joint[:] = 0.0  # recomputed each step while the joint-limit springs are on
         self._anchored = False  # the next hold anchors where it begins, under the new law
         self._gains = np.array([law.k_rot, law.d_rot, law.joint_damping, float(law.gravity_compensation),
-                                law.max_step])
+                                law.max_step, law.joint_limit_stiffness])
 
     def clear_fault(self) -> None:
         """Re-arm after a fault (the caller has made sure the cause is gone). The next hold anchors
@@ -169,19 +197,32 @@ class FlowController:
 
         ``extra_force`` (N, 3) is added to the flow force: the policy's exploration noise.
         """
-        law = self.law
         if q.shape != (self.n,) or dq.shape != (self.n,):
             return self._hold(q, dq, f"joint state has wrong size: q {q.shape}, dq {dq.shape}, want ({self.n},)")
-        code = _state_fault(q, dq, _Q_SANE)
-        if code:
-            return self._hold(q, dq, _FAULTS[code])
         if self.fault:
             return self._hold(q, dq, self.fault)
         arm, law = self.arm, self.law
+        noise = self._no_noise if extra_force is None else extra_force
+        if self._kernel_args is not None and arm.chain is not None:  # one compiled call
+            flags = _flow_tick(q, dq, noise, _Q_SANE, *arm.chain_args, arm.J, arm.x, arm.R, arm.g, *self._kernel_args,
+                               self._gains, law.rotation_ref, law.torque_limits, law.q_soft_min, law.q_soft_max,
+                               self.tau_prev, self.xdot, self.u, self.tau, self.tau_joint)
+            if flags < _FLOW_FAILED:
+                return self._hold(q, dq, _FAULTS[_STATE_FAULT - flags])
+            self._anchored = False  # the flow ran: a hold after this step anchors where it begins
+            self._g_last = arm.g
+            if flags == _FLOW_FAILED:
+                return self._hold(q, dq, f"flow force not finite at x={arm.x.tolist()}")
+            self.flags = flags
+            if flags & NOT_FINITE:
+                self.fault = "controller produced a non-finite torque"
+            return self.tau
+        code = _state_fault(q, dq, _Q_SANE)
+        if code:
+            return self._hold(q, dq, _FAULTS[code])
         self._anchored = False  # the flow runs: a hold after this step anchors where it begins
         arm.kinematics(q)
         self._g_last = arm.g  # last valid gravity torque, kept for a hold on a bad state
-        noise = self._no_noise if extra_force is None else extra_force
         if law.joint_limit_stiffness > 0.0:
             joint_limit_torque(q, law.q_soft_min, law.q_soft_max, law.joint_limit_stiffness, self.tau_joint)
         if self._kernel_args is not None:
@@ -217,10 +258,15 @@ class FlowController:
             return
         law = self.law
         arm = self.arm
-        arm.kinematics(q)
         tau_prev, xdot, u, tau, tau_joint = self._scratch
         tau_prev[:] = self.tau_prev
         tau_joint[:] = self.tau_joint
+        if arm.chain is not None:  # the same compiled call as step's
+            _flow_tick(q, dq, self._no_noise, _Q_SANE, *arm.chain_args, arm.J, arm.x, arm.R, arm.g, *args, self._gains,
+                       law.rotation_ref, law.torque_limits, law.q_soft_min, law.q_soft_max, tau_prev, xdot, u, tau,
+                       tau_joint)
+            return
+        arm.kinematics(q)
         _flow_step(arm.J, arm.R, arm.g, arm.x, dq, self._no_noise, *args, self._gains, law.rotation_ref,
                    law.torque_limits, tau_prev, xdot, u, tau, tau_joint)
 
