@@ -152,3 +152,19 @@ def test_fused_step_holds_on_a_bad_state_as_the_plain_step_does(bad):
     assert fused.fault == plain.fault != ""
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)
     assert np.all(np.isfinite(a))
+
+
+@pytest.mark.parametrize("fused", [True, False], ids=["fused", "pinocchio"])
+def test_the_arm_gravity_follows_the_hold_too(fused):
+    """A Franka driver clamps each command to limit - |g(q)| from ``arm.g``: in hold mode (no flow
+    step) it must still be the gravity of the latest usable state, not of the last flow step."""
+    ctrl = _pair(TorqueLawConfig(gravity_compensation=False))[0 if fused else 1]
+    q1, q2 = Q0.copy(), Q0 + np.array([0.3, 0.4, -0.2, 0.3, 0.5, -0.4, 0.2])
+    ctrl.step(q1, np.zeros(7))
+    ctrl.hold(q2, np.zeros(7))
+    expected = _pinocchio(ctrl.arm.model, ctrl.arm.tcp_id, q2)[3]
+    np.testing.assert_allclose(ctrl.arm.g, expected, rtol=0, atol=1e-10)
+    bad = q2.copy()
+    bad[0] = math.nan
+    ctrl.hold(bad, np.zeros(7))  # an unusable state keeps the last valid gravity
+    np.testing.assert_allclose(ctrl.arm.g, expected, rtol=0, atol=1e-10)

@@ -97,6 +97,16 @@ class ArmModel:
         self.x = oMtcp.translation
         self.R = oMtcp.rotation
 
+    def gravity(self, q: np.ndarray) -> np.ndarray:
+        """g(q) (Nm) into ``g``, returned (with the compiled chain the whole ``kinematics`` is redone:
+        one call). For the safe hold, which needs no Jacobian: ``g`` then stays the gravity of the
+        latest usable state for everyone who reads it."""
+        if self.chain is not None:
+            chain_kinematics(q, *self.chain_args, self.J, self.x, self.R, self.g)
+        else:
+            self.g = pin.computeGeneralizedGravity(self.model, self.data, q).copy()
+        return self.g
+
     def mass_matrix(self, q: np.ndarray) -> np.ndarray:
         """Joint-space mass matrix M(q) including rotor armature, kg m^2 (symmetric)."""
         M = pin.crba(self.model, self.data, q)

@@ -9,7 +9,6 @@ a 1 ms wait than back to back, so a 1 kHz driver pays per call, not only per ope
 from __future__ import annotations
 
 import numpy as np
-import pinocchio as pin
 from numba import njit
 
 from .arm_model import ArmModel
@@ -282,7 +281,7 @@ class FlowController:
         code = _state_fault(q, dq, _Q_SANE, _DQ_SANE_HOLD) if q.shape == dq.shape == (self.n,) else 1
         q_spring = self._q_anchor  # q = anchor: no spring term
         if code == 0 or code == 4:  # q usable
-            self._g_last = pin.computeGeneralizedGravity(self.arm.model, self.arm.data, q).copy()
+            self._g_last = self.arm.gravity(q)  # also arm.g, which a Franka driver's gravity headroom reads
             if not self._anchored:
                 self._q_anchor[:] = q
                 self._anchored = True
