@@ -11,7 +11,11 @@ torque loop: its rate against the rate while the main thread sleeps).
 ``--pin``: franky-sim's threads on CPU 0, this loop on CPU 1 (the tick gets a core the simulator
 does not use; the GIL-counting phase is skipped, its thread would share that core).
 
-    python bench/franka_tick_split.py [--ticks 8000] [--pin]
+``--compare-pinocchio``: also the flow tick after ``readOnce`` with the controller's step in one
+compiled call (the default) and through Pinocchio's bindings and separate kernels (the arm model's
+serial chain switched off), in 16 interleaved blocks, with the per-block medians.
+
+    python bench/franka_tick_split.py [--ticks 8000] [--pin] [--compare-pinocchio]
 
 A probe for docs/hardware.md, not a target benchmark (that is ``bench_franka.py``).
 """
@@ -53,6 +57,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ticks", type=int, default=8000)
     parser.add_argument("--pin", action="store_true", help="franky-sim on CPU 0, the torque loop on CPU 1")
+    parser.add_argument("--compare-pinocchio", action="store_true",
+                        help="also the flow tick with the fused compiled step vs Pinocchio + separate kernels")
     args = parser.parse_args()
     import pylibfranka as franka
 
@@ -107,6 +113,22 @@ def main() -> int:
                 tau = host.tick(int(st.time.to_sec() * 1e9), np.array(st.q), np.array(st.dq), time.monotonic())
                 flow[way].append(perf() - t0)
                 control.writeOnce(franka.Torques(tau.tolist()))
+        paths: dict[str, list[np.ndarray]] = {"fused": [], "pinocchio": []}
+        if args.compare_pinocchio:  # phase 1c: the same flow tick, the step fused or through Pinocchio
+            arm = loop.controller.arm
+            chain, chain_args = arm.chain, arm.chain_args
+            for b in range(16):
+                way = "pinocchio" if b % 2 else "fused"
+                arm.chain, arm.chain_args = (chain, chain_args) if way == "fused" else (None, ())
+                block = np.empty(n // 16)
+                for i in range(block.size):
+                    st, _ = control.readOnce()
+                    t0 = perf()
+                    tau = host.tick(int(st.time.to_sec() * 1e9), np.array(st.q), np.array(st.dq), time.monotonic())
+                    block[i] = perf() - t0
+                    control.writeOnce(franka.Torques(tau.tolist()))
+                paths[way].append(block)
+            arm.chain, arm.chain_args = chain, chain_args
         st, _ = control.readOnce()
         q, dq, stamp = np.array(st.q), np.array(st.dq), int(st.time.to_sec() * 1e9)
         control.writeOnce(franka.Torques(host.tau.tolist()))
@@ -141,6 +163,10 @@ def main() -> int:
     print(f"flow tick, cold       {_pcts(np.array(flow['cold']))}")
     print(f"flow tick, warm       {_pcts(np.array(flow['warm']))}   (host.warm() before readOnce)")
     print(f"flow tick, tight loop {_pcts(tight[100:])}")
+    for way, blocks in paths.items():
+        if blocks:
+            medians = ", ".join(f"{1e6 * np.median(b):.0f}" for b in blocks)
+            print(f"flow tick, {way:9s}   {_pcts(np.concatenate(blocks))}   (block p50s {medians})")
     if args.pin:
         print("pinned: franky-sim on CPU 0, the torque loop on CPU 1 (GIL-counting phase skipped)")
         return 0
