@@ -117,9 +117,12 @@ def main() -> int:
         if args.compare_pinocchio:  # phase 1c: the same flow tick, the step fused or through Pinocchio
             arm = loop.controller.arm
             chain, chain_args = arm.chain, arm.chain_args
+            owned = arm.J, arm.x, arm.R, arm.g  # the Pinocchio path rebinds them to its own arrays
             for b in range(16):
                 way = "pinocchio" if b % 2 else "fused"
                 arm.chain, arm.chain_args = (chain, chain_args) if way == "fused" else (None, ())
+                if way == "fused":
+                    arm.J, arm.x, arm.R, arm.g = owned
                 block = np.empty(n // 16)
                 for i in range(block.size):
                     st, _ = control.readOnce()
@@ -129,6 +132,7 @@ def main() -> int:
                     control.writeOnce(franka.Torques(tau.tolist()))
                 paths[way].append(block)
             arm.chain, arm.chain_args = chain, chain_args
+            arm.J, arm.x, arm.R, arm.g = owned
         st, _ = control.readOnce()
         q, dq, stamp = np.array(st.q), np.array(st.dq), int(st.time.to_sec() * 1e9)
         control.writeOnce(franka.Torques(host.tau.tolist()))

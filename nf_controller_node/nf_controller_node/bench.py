@@ -1,8 +1,9 @@
 """Benchmark of one full 1 kHz controller step against a torch-autograd implementation of it.
 
-One step = Pinocchio update (TCP pose, Jacobian, gravity) + flow phi and Jacobian + controller
-law + joint torque law with limits. The autograd step does the same, with phi's Jacobian from
-``torch.func.jacrev`` instead of the compiled analytic evaluator. Console script: controller_bench.
+One step = ``FlowController.step``: the arm's kinematics (TCP pose, Jacobian, gravity) + flow phi
+and Jacobian + controller law + joint torque law with limits, one compiled call. The autograd step
+does the same with the arm model's update, phi's Jacobian from ``torch.func.jacrev`` instead of the
+compiled analytic evaluator, and the compiled torque law. Console script: controller_bench.
 """
 
 from __future__ import annotations
@@ -118,7 +119,7 @@ def bench_architecture(arch: FlowArchitecture, calls: int, autograd_calls: int, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="Time one full controller step (flow + J + Pinocchio + law) "
+    parser = argparse.ArgumentParser(description="Time one full controller step (kinematics + flow + J + law) "
                                      "against a torch-autograd step; prints JSON.")
     parser.add_argument("--calls", type=int, default=100_000, help="timed calls of the compiled step")
     parser.add_argument("--autograd-calls", type=int, default=3000, help="timed calls of the autograd step")
