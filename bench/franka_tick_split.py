@@ -11,9 +11,10 @@ torque loop: its rate against the rate while the main thread sleeps).
 ``--pin``: franky-sim's threads on CPU 0, this loop on CPU 1 (the tick gets a core the simulator
 does not use; the GIL-counting phase is skipped, its thread would share that core).
 
-``--compare-pinocchio``: also the flow tick after ``readOnce`` with the controller's step in one
-compiled call (the default) and through Pinocchio's bindings and separate kernels (the arm model's
-serial chain switched off), in 16 interleaved blocks, with the per-block medians.
+``--compare-pinocchio``: also the tick after ``readOnce`` with the controller's step (flow) and
+safe hold (hold) each in one compiled call (the default) and through Pinocchio's bindings and
+separate kernels (the arm model's serial chain switched off), 4 interleaved blocks of each of the
+four, with the per-block medians.
 
     python bench/franka_tick_split.py [--ticks 8000] [--pin] [--compare-pinocchio]
 
@@ -113,13 +114,14 @@ def main() -> int:
                 tau = host.tick(int(st.time.to_sec() * 1e9), np.array(st.q), np.array(st.dq), time.monotonic())
                 flow[way].append(perf() - t0)
                 control.writeOnce(franka.Torques(tau.tolist()))
-        paths: dict[str, list[np.ndarray]] = {"fused": [], "pinocchio": []}
-        if args.compare_pinocchio:  # phase 1c: the same flow tick, the step fused or through Pinocchio
+        paths: dict[str, list[np.ndarray]] = {}
+        if args.compare_pinocchio:  # phase 1c: flow and hold ticks, fused or through Pinocchio
             arm = loop.controller.arm
             chain, chain_args = arm.chain, arm.chain_args
             owned = arm.J, arm.x, arm.R, arm.g  # the Pinocchio path rebinds them to its own arrays
             for b in range(16):
                 way = "pinocchio" if b % 2 else "fused"
+                loop.config.idle_mode = "policy" if (b // 2) % 2 == 0 else "hold"
                 arm.chain, arm.chain_args = (chain, chain_args) if way == "fused" else (None, ())
                 if way == "fused":
                     arm.J, arm.x, arm.R, arm.g = owned
@@ -130,7 +132,8 @@ def main() -> int:
                     tau = host.tick(int(st.time.to_sec() * 1e9), np.array(st.q), np.array(st.dq), time.monotonic())
                     block[i] = perf() - t0
                     control.writeOnce(franka.Torques(tau.tolist()))
-                paths[way].append(block)
+                paths.setdefault(f"{way}, {'flow' if loop.config.idle_mode == 'policy' else 'hold'}", []).append(block)
+            loop.config.idle_mode = "policy"
             arm.chain, arm.chain_args = chain, chain_args
             arm.J, arm.x, arm.R, arm.g = owned
         st, _ = control.readOnce()
@@ -170,7 +173,7 @@ def main() -> int:
     for way, blocks in paths.items():
         if blocks:
             medians = ", ".join(f"{1e6 * np.median(b):.0f}" for b in blocks)
-            print(f"flow tick, {way:9s}   {_pcts(np.concatenate(blocks))}   (block p50s {medians})")
+            print(f"{way + ' tick':21s} {_pcts(np.concatenate(blocks))}   (block p50s {medians})")
     if args.pin:
         print("pinned: franky-sim on CPU 0, the torque loop on CPU 1 (GIL-counting phase skipped)")
         return 0

@@ -168,3 +168,36 @@ def test_the_arm_gravity_follows_the_hold_too(fused):
     bad[0] = math.nan
     ctrl.hold(bad, np.zeros(7))  # an unusable state keeps the last valid gravity
     np.testing.assert_allclose(ctrl.arm.g, expected, rtol=0, atol=1e-10)
+
+
+def test_fused_hold_equals_the_hold_through_pinocchio():
+    """The safe hold in one compiled call: the same torques, flags, anchor and last valid gravity as
+    the hold through Pinocchio and separate kernels, over usable states, NaN and absurd positions
+    (last gravity, no spring), absurd velocities (no damping), wrong sizes, and re-anchoring."""
+    law = TorqueLawConfig(gravity_compensation=True, hold_stiffness=80.0, hold_damping=10.0)
+    fused, plain = _pair(law)
+    rng = np.random.default_rng(4)
+    q = Q0.copy()
+    for k in range(400):
+        dq = rng.normal(0.0, 0.5, 7)
+        q_in, dq_in = q.copy(), dq.copy()
+        if k % 17 == 5:
+            q_in[3] = math.nan
+        elif k % 23 == 7:
+            q_in[0] = 100.0
+        elif k % 19 == 3:
+            dq_in[2] = 50.0  # beyond 4x the velocity limit: no damping
+        elif k % 29 == 11:
+            q_in = q_in[:6]
+        if k % 31 == 0:
+            fused.release_hold_anchor()
+            plain.release_hold_anchor()
+        a, b = fused.hold(q_in, dq_in).copy(), plain.hold(q_in, dq_in).copy()
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-10, err_msg=str(k))
+        assert np.all(np.isfinite(a))
+        assert fused.flags == plain.flags and fused._anchored == plain._anchored, k
+        if plain.hold_anchor is not None:
+            np.testing.assert_array_equal(fused.hold_anchor, plain.hold_anchor)
+        np.testing.assert_allclose(fused._g_last, plain._g_last, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(fused.tau_prev, plain.tau_prev, rtol=0, atol=1e-10)
+        q = np.clip(q + rng.normal(0.0, 0.02, 7), panda_spec.Q_MIN, panda_spec.Q_MAX)

@@ -119,6 +119,38 @@ def _flow_tick(q, dq, noise, q_sane, joint_rot, joint_pos, axis, mass, com, tcp_
     return flags
 
 
+_ANCHORED_NOW = 1 << 16  # _hold_tick: set in the result when this call anchored the hold
+_USABLE = 1 << 17  # _hold_tick: set when q was usable (g(q) computed into the arm's g)
+
+
+@njit(cache=True)
+def _hold_tick(q, dq, q_sane, dq_sane, joint_rot, joint_pos, axis, mass, com, tcp_rot, tcp_pos, gravity, o_rot,
+               o_pos, J, x, R, g, g_last, dq_zero, gains, tau_prev, limits, tau, q_anchor, anchored):
+    """``FlowController.hold`` for a correctly sized state in one compiled call: state check, for a
+    usable q the arm's kinematics (g(q) into ``g``) and the anchor (if not ``anchored``), the hold
+    law (damping gains[6], spring gains[7], gravity gains[3], rate limit gains[4]), tau_prev = tau.
+    Returns the law's flags, plus _USABLE for a usable q and _ANCHORED_NOW when it anchored. An
+    unusable q holds with ``g_last`` and no spring, an absurd dq (beyond ``dq_sane``) with no damping."""
+    fault = _state_fault(q, dq, q_sane, dq_sane)
+    bits = 0
+    if fault == 0 or fault == 4:  # q usable
+        bits = _USABLE
+        chain_kinematics(q, joint_rot, joint_pos, axis, mass, com, tcp_rot, tcp_pos, gravity, o_rot, o_pos, J, x, R,
+                         g)
+        if not anchored:
+            for j in range(q.shape[0]):
+                q_anchor[j] = q[j]
+            bits |= _ANCHORED_NOW
+        flags = safe_hold_torque(g, dq if fault == 0 else dq_zero, gains[6], gains[3] > 0.0, tau_prev, limits,
+                                 gains[4], tau, q, q_anchor, gains[7])
+    else:
+        flags = safe_hold_torque(g_last, dq_zero, gains[6], gains[3] > 0.0, tau_prev, limits, gains[4], tau,
+                                 q_anchor, q_anchor, gains[7])
+    for j in range(tau.shape[0]):
+        tau_prev[j] = tau[j]
+    return flags | bits
+
+
 class FlowController:
     """Stable flow controller for the Panda. ``step(q, dq)`` returns the joint torque to command.
 
@@ -168,7 +200,7 @@ class FlowController:
         self.tau_joint[:] = 0.0  # recomputed each step while the joint-limit springs are on
         self._anchored = False  # the next hold anchors where it begins, under the new law
         self._gains = np.array([law.k_rot, law.d_rot, law.joint_damping, float(law.gravity_compensation),
-                                law.max_step, law.joint_limit_stiffness])
+                                law.max_step, law.joint_limit_stiffness, law.hold_damping, law.hold_stiffness])
 
     def clear_fault(self) -> None:
         """Re-arm after a fault (the caller has made sure the cause is gone). The next hold anchors
@@ -278,6 +310,17 @@ class FlowController:
         from a stale q would push open-loop; the anchor stays for the next usable state); an absurd
         dq (beyond 4x the velocity limit) drives no damping."""
         law = self.law
+        arm = self.arm
+        if arm.chain is not None and q.shape == dq.shape == (self.n,):  # one compiled call
+            flags = _hold_tick(q, dq, _Q_SANE, _DQ_SANE_HOLD, *arm.chain_args, arm.J, arm.x, arm.R, arm.g,
+                               self._g_last, self._dq_zero, self._gains, self.tau_prev, law.torque_limits, self.tau,
+                               self._q_anchor, self._anchored)
+            if flags & _USABLE:
+                self._g_last = arm.g  # also what a Franka driver's gravity headroom reads
+                if flags & _ANCHORED_NOW:
+                    self._anchored = True
+            self.flags = flags & ~(_USABLE | _ANCHORED_NOW)
+            return self.tau
         code = _state_fault(q, dq, _Q_SANE, _DQ_SANE_HOLD) if q.shape == dq.shape == (self.n,) else 1
         q_spring = self._q_anchor  # q = anchor: no spring term
         if code == 0 or code == 4:  # q usable
