@@ -102,7 +102,7 @@ class ArmModel:
         one call). For the safe hold, which needs no Jacobian: ``g`` then stays the gravity of the
         latest usable state for everyone who reads it."""
         if self.chain is not None:
-            chain_kinematics(q, *self.chain_args, self.J, self.x, self.R, self.g)
+            self.kinematics(q)
         else:
             self.g = pin.computeGeneralizedGravity(self.model, self.data, q).copy()
         return self.g

@@ -324,7 +324,7 @@ class FlowController:
         code = _state_fault(q, dq, _Q_SANE, _DQ_SANE_HOLD) if q.shape == dq.shape == (self.n,) else 1
         q_spring = self._q_anchor  # q = anchor: no spring term
         if code == 0 or code == 4:  # q usable
-            self._g_last = self.arm.gravity(q)  # also arm.g, which a Franka driver's gravity headroom reads
+            self._g_last = arm.gravity(q)  # also arm.g, which a Franka driver's gravity headroom reads
             if not self._anchored:
                 self._q_anchor[:] = q
                 self._anchored = True
