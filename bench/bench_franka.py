@@ -10,6 +10,7 @@ robot cycles missed between two reads, libfranka exceptions.
 
     python bench/bench_franka.py --minutes 10        # the target run (do not run it on a shared machine)
     python bench/bench_franka.py --minutes 1         # a short run
+    python bench/bench_franka.py --minutes 1 --rt-priority 99   # the loop thread at SCHED_FIFO 99
 
 Writes ``bench/results/franka.json``. Targets (issue 14): 0 exceptions, latency p99 <= 150 us and
 p99.9 <= 300 us, no run of 3 ticks later than 1 ms.
@@ -36,6 +37,11 @@ sys.path[:0] = [str(HERE.parent / p) for p in ("nf_controller_node", "franka_dri
 from franka_driver.loop import DriverConfig, FrankaDriverLoop, summary_us  # noqa: E402
 from franka_driver.robot_model import identify  # noqa: E402
 from franka_driver.simulator import HOST, FrankySim  # noqa: E402
+from franka_driver.thread_priority import (  # noqa: E402
+    check_priority_allowed,
+    current_thread_policy,
+    set_current_thread_priority,
+)
 from nf_controller_node import panda_spec  # noqa: E402
 from nf_controller_node.control_loop import ControlLoop, LoopConfig  # noqa: E402
 from nf_controller_node.flow_spec import FlowArchitecture  # noqa: E402
@@ -46,8 +52,12 @@ from nf_controller_node.torque_law import TorqueLawConfig  # noqa: E402
 TARGETS = {"exceptions": 0, "p99_us_max": 150.0, "p999_us_max": 300.0, "late_run_below": 3}
 
 
-def run(seconds: float, log_dir: Path) -> dict:
-    """Drive the simulated FR3 for ``seconds`` of wall time; the measurements as a dict."""
+def run(seconds: float, log_dir: Path, rt_priority: int = 0) -> dict:
+    """Drive the simulated FR3 for ``seconds`` of wall time, the loop thread at SCHED_FIFO
+    ``rt_priority`` (0: normal scheduling, as the driver with ``realtime: ignore``); the measurements."""
+    refused = check_priority_allowed(rt_priority)
+    if refused:
+        raise SystemExit(refused)
     import pylibfranka as franka
 
     with FrankySim(log_dir / "franky-sim.log"):
@@ -70,7 +80,15 @@ def run(seconds: float, log_dir: Path) -> dict:
         driver = FrankaDriverLoop(robot, host, tcp_arm.tcp_position, DriverConfig(keep_timing=True),
                                   franka.Torques, errors)
         stop = threading.Event()
-        thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)
+        scheduling: list[str] = []
+
+        def loop_thread() -> None:  # as the driver node's thread: the priority first, then the loop
+            set_current_thread_priority(rt_priority)
+            policy, priority = current_thread_policy()
+            scheduling.append(f"{policy} {priority}")
+            driver.run(stop)
+
+        thread = threading.Thread(target=loop_thread, daemon=True)
         sys.setswitchinterval(1e-4)
         gc.collect()
         t0 = time.monotonic()
@@ -83,7 +101,8 @@ def run(seconds: float, log_dir: Path) -> dict:
         del robot, driver.robot
     t = driver.timing
     lat, per = summary_us(t.latency), summary_us(t.periods)
-    return {"seconds": seconds, "wall_s": wall, "arm": spec.kind, "latency": lat, "period": per,
+    return {"seconds": seconds, "wall_s": wall, "arm": spec.kind,
+            "loop_scheduling": scheduling[0] if scheduling else "", "latency": lat, "period": per,
             **t.counters(), "late_fraction": t.late / max(t.ticks, 1), "exceptions": driver.exceptions,
             "last_error": driver.last_error, "fault": loop.fault, "tcp_drift_mm": drift * 1e3,
             "ticks_per_s": t.ticks / max(wall, 1e-9)}
@@ -93,11 +112,13 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=10.0, help="length of the run (default 10)")
     parser.add_argument("--quick", action="store_true", help="30 s instead")
+    parser.add_argument("--rt-priority", type=int, default=0,
+                        help="SCHED_FIFO priority of the loop thread (0: normal scheduling, the default)")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "franka.json")
     args = parser.parse_args()
     seconds = 30.0 if args.quick else 60.0 * args.minutes
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    result = run(seconds, Path(tempfile.mkdtemp(prefix="bench_franka_")))  # franky-sim's log
+    result = run(seconds, Path(tempfile.mkdtemp(prefix="bench_franka_")), args.rt_priority)  # franky-sim's log
     lat = result["latency"]
     result["targets"] = TARGETS
     result["met"] = {"exceptions": result["exceptions"] == TARGETS["exceptions"],
@@ -106,7 +127,8 @@ def main() -> int:
     result["machine"] = {"cpus": os.cpu_count(), "load_1min": os.getloadavg()[0], "python": platform.python_version(),
                          "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
     args.out.write_text(json.dumps(result, indent=1))
-    print(f"{result['ticks']} ticks in {result['wall_s']:.0f} s ({result['ticks_per_s']:.0f}/s), arm {result['arm']}: "
+    print(f"{result['ticks']} ticks in {result['wall_s']:.0f} s ({result['ticks_per_s']:.0f}/s), arm {result['arm']}, "
+          f"loop thread {result['loop_scheduling']}: "
           f"readOnce->writeOnce p50 {lat['p50_us']:.0f} us, p99 {lat['p99_us']:.0f} us, p99.9 {lat['p999_us']:.0f} us, "
           f"max {lat['max_us']:.0f} us; period p99 {result['period']['p99_us']:.0f} us; late {result['late_ticks']} "
           f"(longest run {result['longest_late_run']}); exceptions {result['exceptions']}; load "

@@ -43,13 +43,15 @@ def ros_env(domain_id: int, **extra: str) -> dict[str, str]:
 
 
 class RosProcess:
-    """A child Python process in a given ROS domain; stopped (SIGINT, then SIGKILL) by its PID."""
+    """A child Python process in a given ROS domain; stopped (SIGINT, then SIGKILL) by its PID.
+    ``prefix``: a command that execs Python in its own place (``setpriv ...``: same PID)."""
 
-    def __init__(self, args: Sequence[str], domain_id: int, log_path: Path | None = None, **extra: str):
+    def __init__(self, args: Sequence[str], domain_id: int, log_path: Path | None = None,
+                 prefix: Sequence[str] = (), **extra: str):
         self.log_path = log_path
         out = open(log_path, "w") if log_path else subprocess.DEVNULL
         self.proc = subprocess.Popen(
-            [sys.executable, *args], env=ros_env(domain_id, **extra), stdout=out, stderr=subprocess.STDOUT
+            [*prefix, sys.executable, *args], env=ros_env(domain_id, **extra), stdout=out, stderr=subprocess.STDOUT
         )
 
     @property

@@ -1,7 +1,8 @@
 """franka_driver node: a Franka arm (FR3 or Panda) through libfranka's 1 kHz torque loop, hosting
 the flow controller in the same process.
 
-The node connects to the robot (``robot_ip``; ``realtime`` enforce | ignore), identifies the arm
+The node connects to the robot (``robot_ip``; ``realtime`` enforce | ignore; ``rt_priority``, the
+torque loop thread's SCHED_FIFO priority: ``franka_driver.thread_priority``), identifies the arm
 against the robot's own dynamics model (``franka_driver.robot_model``), builds the controller's
 Pinocchio model of that arm, and runs ``franka_driver.loop.FrankaDriverLoop`` on a driver thread:
 per tick readOnce -> controller -> writeOnce. It is always composed with an ``nf_controller``
@@ -39,11 +40,20 @@ from nf_controller_node.serialized_message import SerializedMessage
 
 from .loop import DriverConfig, FrankaDriverLoop, summary_us
 from .robot_model import ROBOT_KINDS, Identification, WrongRobotModelError, identify
+from .thread_priority import (
+    AUTO,
+    check_priority_allowed,
+    current_thread_policy,
+    resolve_priority,
+    set_current_thread_priority,
+)
 
 _D = DriverConfig()
 PARAMETERS = {
     "robot_ip": ("172.16.0.2", "address of the robot's FCI (franky-sim: 127.0.0.1)"),
     "realtime": ("enforce", "enforce (needs a realtime kernel, as on the robot's PC) | ignore (other kernels, sim)"),
+    "rt_priority": (AUTO, "SCHED_FIFO priority of the torque loop's thread: -1 auto (the highest with realtime "
+                          "enforce, as libfranka's own loops; normal scheduling with ignore), 0 normal, 1..99"),
     "robot_model": ("auto", f"arm type, checked against the robot's own model: {' | '.join(ROBOT_KINDS)}"),
     "held_part": ("gear", f"part in the hand (must equal nf_controller's): {' | '.join(HELD_PART_NAMES)}"),
     "start_position": (_D.start_position.tolist(), "m, TCP position the reset motion drives to before each episode"),
@@ -106,6 +116,12 @@ class FrankaDriverNode(Node):
         _check(p)
         self.params = p
         self.config = driver_config(p, keep_timing=bool(p["timing_log"]))
+        # the loop thread's realtime priority: checked now, before any connection, never dropped silently
+        self.rt_priority = resolve_priority(p["rt_priority"], p["realtime"] == "enforce")
+        refused = check_priority_allowed(self.rt_priority)
+        if refused:
+            raise ValueError(refused)
+        self.loop_scheduling = "not started"
         import pylibfranka as franka  # here, so that --help and parameter errors need no robot
 
         self.franka = franka
@@ -200,6 +216,13 @@ class FrankaDriverNode(Node):
 
     def _drive(self) -> None:
         try:
+            set_current_thread_priority(self.rt_priority)  # allowed: checked at start-up
+        except OSError as exc:  # the system changed its mind since: say so, run at normal priority
+            self.get_logger().error(f"torque loop at normal scheduling: SCHED_FIFO {self.rt_priority} refused: {exc}")
+        policy, priority = current_thread_policy()
+        self.loop_scheduling = f"{policy} {priority}"
+        self.get_logger().info(f"torque loop thread: scheduling {self.loop_scheduling}")
+        try:
             self.driver.run(self._stop)
         except Exception as exc:  # never silently: the robot stops on its own without our commands
             self.get_logger().fatal(f"driver loop stopped: {exc!r}")
@@ -246,6 +269,7 @@ class FrankaDriverNode(Node):
         lat = summary_us(d.timing.take_window())
         values = {"arm": self.spec.kind, "exceptions": d.exceptions, "last_error": d.last_error,
                   "in_error": d.in_error, "recoveries": d.recoveries, "sessions": d.sessions,
+                  "loop_scheduling": self.loop_scheduling,
                   **{f"latency_{k}": f"{v:.1f}" for k, v in lat.items()}, **d.timing.counters(),
                   "resets_done": d.resets_done, "resets_failed": d.resets_failed, "last_reset": d.last_reset,
                   "tcp": np.round(d.x, 4).tolist(), "insertion_depth": f"{d.depth:.4f}", "success": d.success}
