@@ -10,7 +10,7 @@ robot cycles missed between two reads, libfranka exceptions.
 
     python bench/bench_franka.py --minutes 10        # the target run (do not run it on a shared machine)
     python bench/bench_franka.py --minutes 1         # a short run
-    python bench/bench_franka.py --minutes 1 --rt-priority 99   # the loop thread at SCHED_FIFO 99
+    python bench/bench_franka.py --minutes 1 --rt-priority 0    # the loop thread at normal priority
 
 Writes ``bench/results/franka.json``. Targets (issue 14): 0 exceptions, latency p99 <= 150 us and
 p99.9 <= 300 us, no run of 3 ticks later than 1 ms.
@@ -38,9 +38,12 @@ from franka_driver.loop import DriverConfig, FrankaDriverLoop, summary_us  # noq
 from franka_driver.robot_model import identify  # noqa: E402
 from franka_driver.simulator import HOST, FrankySim  # noqa: E402
 from franka_driver.thread_priority import (  # noqa: E402
+    AUTO,
+    apply,
     check_priority_allowed,
     current_thread_policy,
-    set_current_thread_priority,
+    open_robot,
+    resolve_priority,
 )
 from nf_controller_node import panda_spec  # noqa: E402
 from nf_controller_node.control_loop import ControlLoop, LoopConfig  # noqa: E402
@@ -52,16 +55,18 @@ from nf_controller_node.torque_law import TorqueLawConfig  # noqa: E402
 TARGETS = {"exceptions": 0, "p99_us_max": 150.0, "p999_us_max": 300.0, "late_run_below": 3}
 
 
-def run(seconds: float, log_dir: Path, rt_priority: int = 0) -> dict:
-    """Drive the simulated FR3 for ``seconds`` of wall time, the loop thread at SCHED_FIFO
-    ``rt_priority`` (0: normal scheduling, as the driver with ``realtime: ignore``); the measurements."""
-    refused = check_priority_allowed(rt_priority)
+def run(seconds: float, log_dir: Path, rt_priority: int = AUTO) -> dict:
+    """Drive the simulated FR3 for ``seconds`` of wall time, the loop thread scheduled as the driver's
+    with ``realtime: ignore`` and ``rt_priority`` (auto: SCHED_FIFO 99 if allowed; 0: normal); the
+    measurements."""
+    rt_priority, required = resolve_priority(rt_priority, realtime_enforced=False)
+    refused = check_priority_allowed(rt_priority) if required else ""
     if refused:
         raise SystemExit(refused)
     import pylibfranka as franka
 
     with FrankySim(log_dir / "franky-sim.log"):
-        robot = franka.Robot(HOST, franka.RealtimeConfig.kIgnore)
+        robot = open_robot(lambda: franka.Robot(HOST, franka.RealtimeConfig.kIgnore))  # main thread: no FIFO
         state = robot.read_once()
         spec = identify("auto", state, robot.load_model()).spec
         arm = spec.arm_model(panda_spec.GEAR_PART)
@@ -83,7 +88,7 @@ def run(seconds: float, log_dir: Path, rt_priority: int = 0) -> dict:
         scheduling: list[str] = []
 
         def loop_thread() -> None:  # as the driver node's thread: the priority first, then the loop
-            set_current_thread_priority(rt_priority)
+            apply(rt_priority)
             policy, priority = current_thread_policy()
             scheduling.append(f"{policy} {priority}")
             driver.run(stop)
@@ -112,8 +117,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=10.0, help="length of the run (default 10)")
     parser.add_argument("--quick", action="store_true", help="30 s instead")
-    parser.add_argument("--rt-priority", type=int, default=0,
-                        help="SCHED_FIFO priority of the loop thread (0: normal scheduling, the default)")
+    parser.add_argument("--rt-priority", type=int, default=AUTO,
+                        help="SCHED_FIFO priority of the loop thread: -1 auto (99 if allowed, the driver's default "
+                             "with realtime ignore), 0 normal scheduling, 1..99")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "franka.json")
     args = parser.parse_args()
     seconds = 30.0 if args.quick else 60.0 * args.minutes

@@ -40,6 +40,7 @@ sys.path[:0] = [str(HERE.parent / p) for p in ("nf_controller_node", "franka_dri
 
 from franka_driver.robot_model import identify  # noqa: E402
 from franka_driver.simulator import HOST, FrankySim  # noqa: E402
+from franka_driver.thread_priority import AUTO, apply, current_thread_policy, open_robot, resolve_priority  # noqa: E402
 from nf_controller_node import panda_spec  # noqa: E402
 from nf_controller_node.control_loop import ControlLoop, LoopConfig  # noqa: E402
 from nf_controller_node.flow_spec import FlowArchitecture  # noqa: E402
@@ -67,7 +68,10 @@ def main() -> int:
         if args.pin:
             subprocess.run(["taskset", "-a", "-p", "-c", "0", str(sim.pid)], check=True, stdout=subprocess.DEVNULL)
             os.sched_setaffinity(0, {1})  # this (main) thread, which runs the torque loop
-        robot = franka.Robot(HOST, franka.RealtimeConfig.kIgnore)
+        robot = open_robot(lambda: franka.Robot(HOST, franka.RealtimeConfig.kIgnore))
+        apply(resolve_priority(AUTO, realtime_enforced=False)[0])  # this thread runs the loop: as the driver's
+        policy, priority = current_thread_policy()
+        print(f"loop thread scheduling: {policy} {priority}", flush=True)
         state = robot.read_once()
         spec = identify("auto", state, robot.load_model()).spec
         loop = ControlLoop(spec.arm_model(panda_spec.GEAR_PART), TorqueLawConfig(gravity_compensation=False),

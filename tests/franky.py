@@ -12,6 +12,7 @@ import numpy as np
 from franka_driver.loop import DriverConfig, FrankaDriverLoop
 from franka_driver.robot_model import ArmSpec, identify
 from franka_driver.simulator import HOST, FrankySim  # noqa: F401  (re-exported for the tests)
+from franka_driver.thread_priority import AUTO, apply, open_robot, resolve_priority
 from nf_controller_node import panda_spec
 from nf_controller_node.control_loop import ControlLoop, LoopConfig
 from nf_controller_node.host import ControllerHost
@@ -30,7 +31,10 @@ class DriverRig:
         import pylibfranka as franka
 
         self.franka = franka
-        robot = franka.Robot(HOST, franka.RealtimeConfig.kIgnore)
+        def connect() -> object:  # this thread keeps its scheduling (libfranka's Robot() sets FIFO 99)
+            return open_robot(lambda: franka.Robot(HOST, franka.RealtimeConfig.kIgnore))
+
+        robot = connect()
         state = robot.read_once()
         self.identification = identify("auto", state, robot.load_model())
         self.spec = spec = spec or self.identification.spec
@@ -49,7 +53,7 @@ class DriverRig:
                   franka.NetworkException, franka.RealtimeException, franka.InvalidOperationException)
         self.driver = FrankaDriverLoop(robot, self.host, self.tcp_arm.tcp_position, config or DriverConfig(),
                                        franka.Torques, errors, after_tick=self._record,
-                                       connect=lambda: franka.Robot(HOST, franka.RealtimeConfig.kIgnore))
+                                       connect=connect)
         del robot  # the loop owns the connection
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -60,7 +64,14 @@ class DriverRig:
         self.limits.append(self.loop.controller.law.torque_limits.copy())
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self.driver.run, args=(self._stop,), daemon=True)
+        """The loop on its own thread, scheduled as the driver node's with ``realtime: ignore``."""
+        priority, _ = resolve_priority(AUTO, realtime_enforced=False)
+
+        def loop_thread() -> None:
+            apply(priority)
+            self.driver.run(self._stop)
+
+        self._thread = threading.Thread(target=loop_thread, daemon=True)
         self._thread.start()
 
     def robot_seconds(self) -> float:

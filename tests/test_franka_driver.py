@@ -4,11 +4,14 @@ convergence with the torque and rate limits respected, and a reset motion before
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
 from franka_driver.loop import DriverConfig, reset_policy
 from franka_driver.robot_model import FR3, WrongRobotModelError, identify
+from franka_driver.thread_priority import open_robot
 from nf_controller_node.episode import EpisodeRun, EpisodeSpec
 from nf_controller_node.reward import RewardWeights
 
@@ -24,7 +27,7 @@ def sim(tmp_path_factory):
 
 
 def test_identifies_the_fr3_and_refuses_the_panda_description(sim):
-    robot = pylibfranka.Robot("127.0.0.1", pylibfranka.RealtimeConfig.kIgnore)
+    robot = open_robot(lambda: pylibfranka.Robot("127.0.0.1", pylibfranka.RealtimeConfig.kIgnore))
     state, model = robot.read_once(), robot.load_model()
     found = identify("auto", state, model)
     assert found.spec is FR3 and found.spec.joint_names[0] == "fr3_joint1"
@@ -110,6 +113,10 @@ def test_reset_motion_starts_the_episode_and_success_comes_from_kinematics(sim):
         done.result(timeout=120.0)
         assert rig.driver.resets_done == 1, rig.driver.last_reset
         assert rig.loop.episode is run or run.done
+        # the future resolves when the reset ends; the episode records from the next robot state on
+        deadline = time.monotonic() + 10.0
+        while run.steps == 0 and time.monotonic() < deadline:
+            time.sleep(0.001)
         assert np.linalg.norm(run.x[0] - start) < 0.006  # the episode starts at the start
         rig.run_for(0.4)
         assert run.done

@@ -1,8 +1,9 @@
 """The torque loop thread's realtime priority (``franka_driver.thread_priority``, the driver's
-``rt_priority``): resolved from the parameter, really set by the kernel on the loop's thread only,
-and refused with a clear error (exit 2, before any robot connection) when the system will not give it.
-The refusal is the kernel's own: the node runs without CAP_SYS_NICE (``setpriv``) or as a user
-without an rtprio limit."""
+``rt_priority``): libfranka's ``Robot()`` puts its calling thread at SCHED_FIFO 99 (checked here
+against franky-sim) and ``open_robot`` gives it back; the priority is resolved from the parameter,
+set by the kernel on the loop's thread only, and refused with a clear error (exit 2, before any
+robot connection) when the system will not give it. The refusal is the kernel's own: the node runs
+without CAP_SYS_NICE (``setpriv``) or as a user without an rtprio limit."""
 
 from __future__ import annotations
 
@@ -16,10 +17,11 @@ import pytest
 
 from franka_driver.thread_priority import (
     AUTO,
+    apply,
     check_priority_allowed,
     current_thread_policy,
+    open_robot,
     resolve_priority,
-    set_current_thread_priority,
 )
 
 from ros_testing import REPO, RosProcess, allocate_domain_id
@@ -29,17 +31,23 @@ ALLOWED = check_priority_allowed(10) == ""
 
 
 def _without_sys_nice() -> list[str] | None:
-    """A command prefix that takes the realtime privilege away from a child (None if not possible here)."""
+    """A command prefix that starts a child at normal scheduling without the realtime privilege
+    (None if not possible here)."""
+    chrt = shutil.which("chrt")
+    if chrt is None:
+        return None
+    normal = [chrt, "--other", "0"]  # a child of a FIFO thread would inherit FIFO, and may always lower it
     if os.geteuid() == 0:
         setpriv = shutil.which("setpriv")
-        return [setpriv, "--inh-caps=-sys_nice", "--bounding-set=-sys_nice"] if setpriv else None
-    return [] if not ALLOWED else None  # a user without an rtprio limit is refused as it is
+        return [*normal, setpriv, "--inh-caps=-sys_nice", "--bounding-set=-sys_nice"] if setpriv else None
+    return normal if not ALLOWED else None  # a user without an rtprio limit is refused as it is
 
 
 def test_auto_follows_realtime_and_explicit_values_are_checked():
-    assert resolve_priority(AUTO, realtime_enforced=True) == TOP  # as libfranka's own control loops
-    assert resolve_priority(AUTO, realtime_enforced=False) == 0
-    assert resolve_priority(0, True) == 0 and resolve_priority(20, False) == 20
+    assert resolve_priority(AUTO, realtime_enforced=True) == (TOP, True)  # as libfranka: 99, or an error
+    # realtime ignore: FIFO when the system allows it (as libfranka's kIgnore), else normal, never an error
+    assert resolve_priority(AUTO, realtime_enforced=False) == ((TOP, False) if ALLOWED else (0, False))
+    assert resolve_priority(0, True) == (0, False) and resolve_priority(20, False) == (20, True)
     for bad in (-2, TOP + 1, 1000):
         with pytest.raises(ValueError, match="rt_priority must be -1"):
             resolve_priority(bad, True)
@@ -51,14 +59,23 @@ def test_the_priority_is_set_on_the_calling_thread_only():
     seen: list[tuple[str, int]] = []
 
     def loop_thread() -> None:
-        set_current_thread_priority(10)
+        apply(10)
         seen.append(current_thread_policy())
+        inner: list[tuple[str, int]] = []
+        child = threading.Thread(target=lambda: (inner.append(current_thread_policy()), apply(0),
+                                                 inner.append(current_thread_policy())))
+        child.start()
+        child.join()
+        seen.extend(inner)
 
+    before = current_thread_policy()
     thread = threading.Thread(target=loop_thread)
     thread.start()
     thread.join()
-    assert seen == [("fifo", 10)]
-    assert current_thread_policy() == ("other", 0)  # this (main) thread kept normal scheduling
+    # a thread started from a FIFO thread inherits FIFO (why the driver sets every policy explicitly),
+    # and apply(0) gives it normal scheduling back
+    assert seen == [("fifo", 10), ("fifo", 10), ("other", 0)]
+    assert current_thread_policy() == before  # the thread that started them kept its own
 
 
 def test_the_kernel_refusing_fifo_gives_a_message_that_says_what_to_do():
@@ -96,3 +113,31 @@ def test_the_driver_refuses_a_priority_it_cannot_have_before_connecting(extra, r
         stack.proc.wait(60.0)
     assert stack.proc.returncode == 2 and reason in stack.log(), stack.log()
     assert "cannot connect" not in stack.log()
+
+
+@pytest.mark.skipif(not ALLOWED, reason="this user may not use SCHED_FIFO (no rtprio limit)")
+def test_libfranka_raises_its_callers_priority_and_open_robot_gives_it_back(tmp_path):
+    """What the driver works around, on the real library: ``Robot()`` with ``kIgnore`` leaves the
+    thread that called it at SCHED_FIFO 99 (the executor thread, and then every thread and process it
+    starts); ``open_robot`` restores the caller's scheduling and the connection works as before."""
+    pylibfranka = pytest.importorskip("pylibfranka")
+    from franky import HOST, FrankySim
+
+    out: dict[str, object] = {}
+
+    def caller() -> None:  # a thread of its own: this test's thread keeps its scheduling either way
+        apply(0)
+        robot = pylibfranka.Robot(HOST, pylibfranka.RealtimeConfig.kIgnore)
+        out["bare"] = current_thread_policy()
+        del robot
+        apply(0)
+        robot = open_robot(lambda: pylibfranka.Robot(HOST, pylibfranka.RealtimeConfig.kIgnore))
+        out["opened"] = current_thread_policy()
+        out["q"] = list(robot.read_once().q)
+
+    with FrankySim(tmp_path / "franky-sim.log"):
+        thread = threading.Thread(target=caller)
+        thread.start()
+        thread.join(60.0)
+    assert out["bare"] == ("fifo", TOP), out
+    assert out["opened"] == ("other", 0) and len(out["q"]) == 7, out

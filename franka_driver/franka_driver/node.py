@@ -40,20 +40,14 @@ from nf_controller_node.serialized_message import SerializedMessage
 
 from .loop import DriverConfig, FrankaDriverLoop, summary_us
 from .robot_model import ROBOT_KINDS, Identification, WrongRobotModelError, identify
-from .thread_priority import (
-    AUTO,
-    check_priority_allowed,
-    current_thread_policy,
-    resolve_priority,
-    set_current_thread_priority,
-)
+from .thread_priority import AUTO, apply, check_priority_allowed, current_thread_policy, open_robot, resolve_priority
 
 _D = DriverConfig()
 PARAMETERS = {
     "robot_ip": ("172.16.0.2", "address of the robot's FCI (franky-sim: 127.0.0.1)"),
     "realtime": ("enforce", "enforce (needs a realtime kernel, as on the robot's PC) | ignore (other kernels, sim)"),
-    "rt_priority": (AUTO, "SCHED_FIFO priority of the torque loop's thread: -1 auto (the highest with realtime "
-                          "enforce, as libfranka's own loops; normal scheduling with ignore), 0 normal, 1..99"),
+    "rt_priority": (AUTO, "SCHED_FIFO priority of the torque loop's thread (only): -1 auto (99, as libfranka "
+                          "gives its threads; with realtime ignore only if allowed), 0 normal, 1..99"),
     "robot_model": ("auto", f"arm type, checked against the robot's own model: {' | '.join(ROBOT_KINDS)}"),
     "held_part": ("gear", f"part in the hand (must equal nf_controller's): {' | '.join(HELD_PART_NAMES)}"),
     "start_position": (_D.start_position.tolist(), "m, TCP position the reset motion drives to before each episode"),
@@ -117,8 +111,8 @@ class FrankaDriverNode(Node):
         self.params = p
         self.config = driver_config(p, keep_timing=bool(p["timing_log"]))
         # the loop thread's realtime priority: checked now, before any connection, never dropped silently
-        self.rt_priority = resolve_priority(p["rt_priority"], p["realtime"] == "enforce")
-        refused = check_priority_allowed(self.rt_priority)
+        self.rt_priority, required = resolve_priority(p["rt_priority"], p["realtime"] == "enforce")
+        refused = check_priority_allowed(self.rt_priority) if required else ""
         if refused:
             raise ValueError(refused)
         self.loop_scheduling = "not started"
@@ -164,7 +158,9 @@ class FrankaDriverNode(Node):
 
     def _connect(self) -> Any:
         """A new libfranka connection to ``robot_ip``."""
-        return self.franka.Robot(self.params["robot_ip"], self._realtime_mode)
+        # libfranka's constructor would leave this thread (the executor, or the loop after a network
+        # error) at SCHED_FIFO 99: open_robot gives it its own scheduling back
+        return open_robot(lambda: self.franka.Robot(self.params["robot_ip"], self._realtime_mode))
 
     # ------------------------------------------------------------------ composition
     def attach(self, controller: Any) -> FrankaDriverLoop:
@@ -216,7 +212,7 @@ class FrankaDriverNode(Node):
 
     def _drive(self) -> None:
         try:
-            set_current_thread_priority(self.rt_priority)  # allowed: checked at start-up
+            apply(self.rt_priority)  # checked at start-up (0: normal scheduling, also when inherited)
         except OSError as exc:  # the system changed its mind since: say so, run at normal priority
             self.get_logger().error(f"torque loop at normal scheduling: SCHED_FIFO {self.rt_priority} refused: {exc}")
         policy, priority = current_thread_policy()
