@@ -86,6 +86,12 @@ def test_stack_runs_an_iteration_and_leaves_a_complete_run_folder(tmp_path):
     assert (run / "final_policy.gif").stat().st_size > 10_000
     summary = (run / "summary.md").read_text()
     assert "| 1 |" in summary and "Bag `bag/` (closed" in summary
+    # the prior evaluated on the same held-out start as the learned controller, both in the summary
+    prior = json.loads((run / "learner" / "evaluation_prior.json").read_text())
+    final = json.loads((run / "learner" / "evaluation.json").read_text())
+    assert (prior["iteration"], final["iteration"]) == (0, 1) and prior["episodes"] == final["episodes"] == 1
+    assert [e["start_seed"] for e in prior["per_episode"]] == [e["start_seed"] for e in final["per_episode"]]
+    assert "| the prior (before iteration 1) | 1 |" in summary and "| learned (after iteration 1) | 1 |" in summary
     # the update takes milliseconds: in seconds with one decimal it read 0.0 for every iteration
     assert f"| {1e3 * metrics[0]['update_seconds']:.0f} |" in summary and "update (ms)" in summary
     # the bag holds the run: closed cleanly, the two rollouts streamed by the controller, the policy
@@ -95,6 +101,7 @@ def test_stack_runs_an_iteration_and_leaves_a_complete_run_folder(tmp_path):
         assert health.counts[topic] > 0, (topic, dict(health.counts))
     # every episode, the first included (the learner starts only once the recorder subscribes), complete
     episodes = reader.rollout_chunks(run / "bag")
-    assert len(episodes) == 3, {k: [(c.seq, c.final) for c in v] for k, v in episodes.items()}  # 2 training + 1 eval
-    assert sorted(episodes) == list(range(min(episodes), min(episodes) + 3))
+    # the prior's evaluation, 2 training rollouts, the final evaluation
+    assert len(episodes) == 4, {k: [(c.seq, c.final) for c in v] for k, v in episodes.items()}
+    assert sorted(episodes) == list(range(min(episodes), min(episodes) + 4))
     assert all(v[-1].final and len(v) == v[-1].n_chunks for v in episodes.values())

@@ -6,7 +6,9 @@ completed iterations).
 The training settings are the task's parameters file (the ``/**`` and ``learner_node``
 sections), exactly what ``train --config`` reads, so an in-process run and a run over ROS with
 the same file and seed draw the same starts and noise. ``out_dir`` gets the same metrics,
-checkpoint and evaluation files as ``train``; a restarted learner resumes from the checkpoint
+checkpoint and evaluation files as ``train``, and (``evaluate_prior``) ``evaluation_prior.json``:
+the deterministic prior on the same held-out starts before the first iteration, so a run shows
+what it learned against where it began. A restarted learner resumes from the checkpoint
 and repeats the interrupted iteration with the same seeds. Episodes that fail or arrive
 incomplete are reported and retried with the same seeds, then dropped.
 """
@@ -60,7 +62,12 @@ NODE_PARAMETERS = {  # learner_node's own settings besides TrainConfig's
     # before it did, and the bag would hold no policy). Waited for at most server_timeout.
     "policy_subscribers": 1,
     "policy_ack_timeout": 5.0,  # s to wait at the end for every subscriber to acknowledge the last policy
+    # Before the first iteration, the deterministic prior on the same eval_episodes held-out starts as
+    # the final evaluation (evaluation_prior.json): what the run learned is then shown, not assumed.
+    "evaluate_prior": True,
 }
+PRIOR_EVALUATION = "evaluation_prior.json"
+EVALUATION = "evaluation.json"
 ON_SAFE_HOLD = ("wait", "auto")
 AUTO_CLEARS_PER_EPISODE = 3  # "auto": an episode that faults this often after clearing is dropped
 _FIELDS = {f for f in TrainConfig.__dataclass_fields__}
@@ -286,6 +293,14 @@ class RosTraining:
         cfg, trainer = self.cfg, self.trainer
         LOG.info("NF-PPO over ROS on %s: iterations %d..%d, %d rollouts each, output %s", cfg.task,
                  trainer.iteration + 1, cfg.iterations, cfg.rollouts_per_iter, self.out_dir)
+        if trainer.iteration == 0 and self.node.settings["evaluate_prior"] \
+                and not (self.out_dir / PRIOR_EVALUATION).exists():
+            LOG.info("the prior first: deterministic, on the held-out starts of the final evaluation")
+            if self.evaluate(version, PRIOR_EVALUATION, "prior"):
+                LOG.error("no episode of the prior's evaluation completed: training goes on without it")
+            if self.stop.is_set():
+                LOG.info("stopped before iteration 1")
+                return 0
         while trainer.iteration < cfg.iterations and not self.stop.is_set():
             t0 = time.perf_counter()
             episodes: list[EpisodeRecord | None] = []
@@ -318,8 +333,9 @@ class RosTraining:
             return 0
         return self.evaluate(version)
 
-    def evaluate(self, version: int) -> int:
-        """The deterministic controller from the held-out starts, over ROS; writes evaluation.json."""
+    def evaluate(self, version: int, file_name: str = EVALUATION, what: str = "evaluation") -> int:
+        """The deterministic controller (policy ``version``) from the held-out starts, over ROS;
+        writes ``file_name`` (evaluation.json: after training; evaluation_prior.json: before it)."""
         n = self.cfg.eval_episodes if self.cfg.start != "fixed" else min(self.cfg.eval_episodes, 1)
         recs = []
         for k in range(n):
@@ -333,8 +349,8 @@ class RosTraining:
         out.update(episode_summary(recs))
         out["per_episode"] = [{"start_seed": r.start_seed, "return": r.episode_return, "success": r.final_success,
                                "final_distance": r.final_distance, "max_depth": float(r.depth.max())} for r in recs]
-        _atomic_write(self.out_dir / "evaluation.json", json.dumps(out, indent=1, default=_json_float))
-        LOG.info("evaluation (deterministic, %d held-out starts): success %.2f, final distance %.4f m",
+        _atomic_write(self.out_dir / file_name, json.dumps(out, indent=1, default=_json_float))
+        LOG.info("%s (deterministic, %d held-out starts): success %.2f, final distance %.4f m", what,
                  len(recs), out["success_rate"], out["final_distance_mean"])
         return 0
 

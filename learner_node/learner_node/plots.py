@@ -45,9 +45,12 @@ def curve_stats(histories: Sequence[Sequence[Mapping[str, float]]], key: str) ->
 
 
 def plot_learning_curve_groups(groups: Mapping[str, Sequence[Sequence[Mapping[str, float]]]], path: str | Path,
-                               title: str = "") -> Path:
+                               title: str = "", evaluations: Sequence[tuple[str, float, Mapping[str, float]]] = ()
+                               ) -> Path:
     """Return, success and final distance per iteration: per group the mean over seeds (line) and the
-    range over seeds (band). ``groups`` maps a label to one metrics history per seed. Writes ``path``."""
+    range over seeds (band). ``groups`` maps a label to one metrics history per seed. ``evaluations``:
+    (label, iteration, evaluation row) drawn as single points, say the deterministic controller on
+    held-out starts before and after training. Writes ``path``."""
     plt = _pyplot()
     path = Path(path)
     fig, axes = plt.subplots(1, len(CURVE_KEYS), figsize=(4.2 * len(CURVE_KEYS), 3.4))
@@ -62,13 +65,18 @@ def plot_learning_curve_groups(groups: Mapping[str, Sequence[Sequence[Mapping[st
             ax.plot(it, mean, color=color, linestyle=style, label=f"{label} ({seeds} seed{'s' if seeds != 1 else ''})")
             if seeds > 1:
                 ax.fill_between(it, lo, hi, color=color, alpha=0.2, linewidth=0)
+    for (label, iteration, row), marker in zip(evaluations, ("o", "*", "s", "D"), strict=False):
+        for ax, (key, _) in zip(axes, CURVE_KEYS, strict=True):
+            if key in row:
+                ax.plot([iteration], [float(row[key])], linestyle="none", marker=marker, markersize=9,
+                        color="black", label=label)
     for ax, (key, ylabel) in zip(axes, CURVE_KEYS, strict=True):
         ax.set_xlabel("iteration")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
         if key == "success_rate":
             ax.set_ylim(-0.05, 1.05)
-    if groups:
+    if groups or evaluations:
         axes[0].legend(fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
@@ -79,10 +87,12 @@ def plot_learning_curve_groups(groups: Mapping[str, Sequence[Sequence[Mapping[st
 
 
 def plot_learning_curves(histories: Sequence[Sequence[Mapping[str, float]]], path: str | Path, title: str = "",
-                         label: str = "mean over seeds") -> Path:
+                         label: str = "mean over seeds",
+                         evaluations: Sequence[tuple[str, float, Mapping[str, float]]] = ()) -> Path:
     """Learning curves of one configuration: ``histories`` holds each seed's ``Trainer.history``
-    (a single run is ``[trainer.history]``). Mean over seeds with the min-max band. Writes ``path``."""
-    return plot_learning_curve_groups({label: histories}, path, title)
+    (a single run is ``[trainer.history]``). Mean over seeds with the min-max band; ``evaluations``
+    as in ``plot_learning_curve_groups``. Writes ``path``."""
+    return plot_learning_curve_groups({label: histories}, path, title, evaluations)
 
 
 def plot_final_distance_distribution(groups: Mapping[str, Sequence[float]], path: str | Path,

@@ -11,8 +11,8 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
     """``summary.md``: settings, learning progress, evaluation, timings and the files of the run."""
     learner = run_dir / "learner"
     metrics = json.loads((learner / "metrics.json").read_text()) if (learner / "metrics.json").exists() else []
-    evaluation = json.loads((learner / "evaluation.json").read_text()) if (learner / "evaluation.json").exists() \
-        else None
+    evaluation, prior = (json.loads((learner / name).read_text()) if (learner / name).exists() else None
+                         for name in ("evaluation.json", "evaluation_prior.json"))
     cfg = json.loads((learner / "config.json").read_text()) if (learner / "config.json").exists() else {}
     how = "sim and controller composed in one process" if composed else "sim and controller as two processes"
     lines = [f"# Run {run_dir.name}", "", f"Stack run with `{config}` over ROS 2 (lockstep simulation, {how}), "
@@ -31,10 +31,15 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
         lines.append("")
     else:
         lines += ["No iteration completed.", ""]
-    if evaluation:
-        lines += [f"Deterministic controller after iteration {evaluation['iteration']} on "
-                  f"{evaluation['episodes']} held-out starts: success {evaluation['success_rate']:.2f}, "
-                  f"final distance {evaluation['final_distance_mean']:.4f} m.", ""]
+    if prior or evaluation:
+        lines += ["Deterministic controller on the held-out starts (no exploration):", "",
+                  "| controller | starts | success | final distance (m) | return |", "|---|---|---|---|---|"]
+        for label, e in (("the prior (before iteration 1)", prior),
+                         (f"learned (after iteration {evaluation['iteration']})" if evaluation else "", evaluation)):
+            if e:
+                lines.append(f"| {label} | {e['episodes']} | {e['success_rate']:.2f} | "
+                             f"{e['final_distance_mean']:.4f} | {e['return_mean']:.1f} |")
+        lines.append("")
     lines += bag_lines(run_dir / "bag")
     files = sorted(p.relative_to(run_dir) for p in run_dir.rglob("*") if p.is_file())
     shown = [f for f in files if not str(f).startswith(("logs/", "bag/"))]
@@ -46,13 +51,22 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
 
 
 def plot_curves(metrics_path: Path, out: Path, title: str) -> bool:
-    """Learning curves of the run (``plots.plot_learning_curves``); False when there is nothing to plot."""
+    """Learning curves of the run (``plots.plot_learning_curves``), with the deterministic controller
+    on the held-out starts before and after training as points when the learner evaluated them
+    (files beside ``metrics_path``); False when there is nothing to plot."""
     rows = json.loads(metrics_path.read_text()) if metrics_path.exists() else []
     if not rows:
         return False
     from learner_node.plots import plot_learning_curves
 
-    plot_learning_curves([rows], out, title, label="this run")
+    points = []
+    for name, label in (("evaluation_prior.json", "prior, held-out, deterministic"),
+                        ("evaluation.json", "learned, held-out, deterministic")):
+        path = metrics_path.parent / name
+        if path.exists():
+            e = json.loads(path.read_text())
+            points.append((label, float(e["iteration"]), e))
+    plot_learning_curves([rows], out, title, label="this run (training rollouts)", evaluations=points)
     return True
 
 
