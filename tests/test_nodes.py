@@ -263,6 +263,9 @@ def test_composed_realtime_stack_times_its_ticks(probe_and_domain, tmp_path: Pat
     ([*SIM, "-p", "mode:=fast"], "mode must be one of"),
     ([*SIM, "-p", "mode:=realtime", "-p", "response_log:=/proc/no/such/latency.npy"], "response_log: cannot create"),
     ([*CONTROLLER, "-p", "held_part:=anvil"], "held_part must be"),
+    # a -p whose type differs from the parameters file's: rcl keeps the file's value without a word
+    ([*CONTROLLER, "--params-file", str(REPO / "config" / "gear.yaml"), "-p", "nf_controller:hold_damping:=soft"],
+     "not applied: -p nf_controller:hold_damping:=soft (in effect: 2.0)"),
 ])
 def test_nodes_refuse_bad_parameters(args, reason, tmp_path: Path):
     with RosProcess(args, allocate_domain_id(), tmp_path / "node.log") as node:

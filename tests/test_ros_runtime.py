@@ -5,6 +5,7 @@ spin slices. Real rclpy, own ROS_DOMAIN_ID."""
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 
@@ -13,7 +14,8 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-from nf_controller_node.ros_runtime import SpinLock, run_node
+from nf_controller_node import ros_runtime
+from nf_controller_node.ros_runtime import SpinLock, command_line_parameters, declare_read_only, run_node
 
 from ros_testing import allocate_domain_id
 
@@ -114,3 +116,38 @@ def test_a_spin_lock_caller_gets_in_without_waiting_out_the_slice(domain):
         rclpy.try_shutdown()
     assert waited < 1.0, f"20 turns took {waited:.2f} s with 1 s spin slices"
     assert slices, "the executor thread never finished a slice"
+
+
+def test_command_line_parameters_that_reach_a_node():
+    argv = ["prog", "--ros-args", "--params-file", "f.yaml", "-p", "franka_driver:a:=1", "-p", "b:=x",
+            "-p", "sim_bridge:c:=2", "--param", "/franka_driver:d:=[1, 2]", "--", "-p", "e:=3"]
+    assert command_line_parameters(argv, "franka_driver") == {"a": "1", "b": "x", "d": "[1, 2]"}
+    assert command_line_parameters(argv, "sim_bridge") == {"b": "x", "c": "2"}
+
+
+def test_a_command_line_value_the_parameters_file_kept_is_an_error(tmp_path, monkeypatch):
+    """Real rcl: with the same parameter in a --params-file, a -p of another type is dropped without a
+    word (the file's value stays); declare_read_only says so instead. Values rcl applies pass."""
+    params = tmp_path / "p.yaml"
+    params.write_text("probe_node:\n  ros__parameters:\n    settle: 200\n    gain: 1.5\n    goal: [0.0]\n")
+    specs = {"settle": (100, ""), "gain": (1.0, ""), "goal": ([0.0], "")}
+    cases = [(["-p", "probe_node:settle:=abc"], "-p probe_node:settle:=abc (in effect: 200)"),
+             (["-p", "probe_node:gain:=1e-3", "-p", "goal:=[0.5,0.0,0.05]"], None)]
+    for extra, error in cases:
+        argv = ["prog", "--ros-args", "--params-file", str(params), *extra]
+        monkeypatch.setattr(sys, "argv", argv)
+        monkeypatch.setattr(ros_runtime, "_command_line", None)  # what a node made outside run_node sees
+        context = rclpy.Context()
+        rclpy.init(args=argv, context=context)
+        node = Node("probe_node", context=context)
+        try:
+            if error is None:
+                values = declare_read_only(node, specs)
+                assert values["gain"] == 1e-3 and values["goal"] == [0.5, 0.0, 0.05] and values["settle"] == 200
+            else:
+                with pytest.raises(ValueError, match="not applied") as info:
+                    declare_read_only(node, specs)
+                assert error in str(info.value)
+        finally:
+            node.destroy_node()
+            rclpy.shutdown(context=context)

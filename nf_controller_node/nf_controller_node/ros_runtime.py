@@ -20,6 +20,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import rclpy
+import yaml
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.experimental import EventsExecutor
@@ -44,13 +45,78 @@ def parse_cli(prog: str, description: str, argv: Sequence[str], epilog: str | No
     parser.parse_args(remove_ros_args(list(argv))[1:])
 
 
+_command_line: list[str] | None = None  # run_node's argv (sys.argv when a node is made elsewhere)
+
+
+def command_line_parameters(argv: Sequence[str], node_name: str) -> dict[str, str]:
+    """The ``-p``/``--param`` values of ``argv``'s ROS arguments that reach node ``node_name``
+    (``name:=value`` for every node, ``node:name:=value`` for this one), as written."""
+    out: dict[str, str] = {}
+    in_ros = False
+    args = list(argv)
+    for i, arg in enumerate(args):
+        if arg == "--ros-args":
+            in_ros = True
+        elif arg == "--":
+            in_ros = False
+        elif in_ros and arg in ("-p", "--param") and i + 1 < len(args):
+            target, sep, value = args[i + 1].partition(":=")
+            if not sep:
+                continue
+            node, _, name = target.rpartition(":")
+            if node in ("", node_name, "/" + node_name):
+                out[name] = value
+    return out
+
+
+def _parse(raw: str) -> Any:
+    """A ``-p`` value as rcl reads it: a number (``1e-3`` too, which YAML 1.1 leaves a string), a
+    bool, a list of those, or the text."""
+    for number in (int, float):
+        try:
+            return number(raw)
+        except ValueError:
+            pass
+    try:
+        value = yaml.safe_load(raw)
+    except yaml.YAMLError:
+        return raw
+    if isinstance(value, list):
+        return [_parse(v) if isinstance(v, str) else v for v in value]
+    return value
+
+
+def _same_value(actual: Any, given: Any) -> bool:
+    if isinstance(actual, (list, tuple)) and isinstance(given, list):
+        return len(actual) == len(given) and all(_same_value(a, g) for a, g in zip(actual, given, strict=True))
+    if isinstance(actual, bool) or isinstance(given, bool):
+        return actual is given
+    if isinstance(actual, (int, float)) and isinstance(given, (int, float)):
+        return float(actual) == float(given)
+    return actual == given
+
+
 def declare_read_only(node: Node, spec: Mapping[str, tuple[Any, str]]) -> dict[str, Any]:
     """Declare parameters ``name: (default, description)`` as read-only (fixed for the node's life)
-    and return their values. Checking the values is the caller's job."""
+    and return their values. Checking the values is the caller's job.
+
+    A ``-p`` on the command line that did not take effect is an error (``ValueError``), never
+    silence: rcl drops a command-line value whose type differs from the one a ``--params-file``
+    gives the same parameter (``-p franka_driver:reset_settle:=abc`` left the file's 200 in place)."""
     values = {}
     for name, (default, description) in spec.items():
         descriptor = ParameterDescriptor(description=description, read_only=True)
         values[name] = node.declare_parameter(name, default, descriptor).value
+    given = command_line_parameters(sys.argv if _command_line is None else _command_line, node.get_name())
+    ignored = []
+    for name, raw in given.items():
+        if name not in values:
+            continue
+        if not _same_value(values[name], _parse(raw)):
+            ignored.append(f"-p {node.get_name()}:{name}:={raw} (in effect: {values[name]!r})")
+    if ignored:
+        raise ValueError(f"command-line parameter(s) not applied: {'; '.join(ignored)}. ROS keeps the "
+                         "parameters file's value when a -p value has another type than the file's")
     return values
 
 
@@ -124,8 +190,10 @@ def run_node(make_node: Callable[[], Node | Sequence[Node]], prog: str, descript
     make calls that must not interleave with the executor (rclpy 7.1's ``ActionClient.send_goal_async``
     registers its request only after sending it: a fast response handled in between is dropped).
     """
+    global _command_line
     argv = list(sys.argv if argv is None else argv)
     parse_cli(prog, description, argv, epilog)
+    _command_line = argv
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
@@ -167,6 +235,7 @@ def run_node(make_node: Callable[[], Node | Sequence[Node]], prog: str, descript
         spinner.start()
         return work(node, stop)
     finally:
+        _command_line = None
         stop.set()
         if spinner is not None:
             spinner.join(timeout=2.0)
