@@ -41,7 +41,16 @@ from nf_controller_node.topics import CONTROLLER_STATUS, POLICY_PARAMETERS, ROLL
 from .config import TrainConfig
 from .rollout import EpisodeRecord
 from .ros_episodes import ChunkCollector, IncompleteEpisodeError, episode_from_chunks
-from .trainer import CHECKPOINT, EVAL_SEED_BASE, Trainer, _atomic_write, _json_float, episode_summary
+from .trainer import (
+    CHECKPOINT,
+    EVAL_SEED_BASE,
+    EVALUATION_FILE,
+    PRIOR_EVALUATION_FILE,
+    Trainer,
+    _atomic_write,
+    _json_float,
+    episode_summary,
+)
 
 LOG = logging.getLogger("learner_node")
 POLICY_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -66,8 +75,6 @@ NODE_PARAMETERS = {  # learner_node's own settings besides TrainConfig's
     # the final evaluation (evaluation_prior.json): what the run learned is then shown, not assumed.
     "evaluate_prior": True,
 }
-PRIOR_EVALUATION = "evaluation_prior.json"
-EVALUATION = "evaluation.json"
 ON_SAFE_HOLD = ("wait", "auto")
 AUTO_CLEARS_PER_EPISODE = 3  # "auto": an episode that faults this often after clearing is dropped
 _FIELDS = {f for f in TrainConfig.__dataclass_fields__}
@@ -294,9 +301,9 @@ class RosTraining:
         LOG.info("NF-PPO over ROS on %s: iterations %d..%d, %d rollouts each, output %s", cfg.task,
                  trainer.iteration + 1, cfg.iterations, cfg.rollouts_per_iter, self.out_dir)
         if trainer.iteration == 0 and self.node.settings["evaluate_prior"] \
-                and not (self.out_dir / PRIOR_EVALUATION).exists():
+                and not (self.out_dir / PRIOR_EVALUATION_FILE).exists():
             LOG.info("the prior first: deterministic, on the held-out starts of the final evaluation")
-            if self.evaluate(version, PRIOR_EVALUATION, "prior"):
+            if self.evaluate(version, PRIOR_EVALUATION_FILE, "prior"):
                 LOG.error("no episode of the prior's evaluation completed: training goes on without it")
             if self.stop.is_set():
                 LOG.info("stopped before iteration 1")
@@ -333,7 +340,7 @@ class RosTraining:
             return 0
         return self.evaluate(version)
 
-    def evaluate(self, version: int, file_name: str = EVALUATION, what: str = "evaluation") -> int:
+    def evaluate(self, version: int, file_name: str = EVALUATION_FILE, what: str = "evaluation") -> int:
         """The deterministic controller (policy ``version``) from the held-out starts, over ROS;
         writes ``file_name`` (evaluation.json: after training; evaluation_prior.json: before it)."""
         n = self.cfg.eval_episodes if self.cfg.start != "fixed" else min(self.cfg.eval_episodes, 1)

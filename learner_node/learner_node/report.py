@@ -37,12 +37,11 @@ import numpy as np
 
 from .config import TrainConfig
 from .rollout import EpisodeRecord
-from .trainer import CHECKPOINT, EVAL_SEED_BASE, Trainer, build_policy, make_evaluator
+from .trainer import CHECKPOINT, EVAL_SEED_BASE, EVALUATION_FILE, Trainer, build_policy, make_evaluator
 
 LOG = logging.getLogger("nf_report")
 EPISODES_FILE = "episodes.jsonl"
 FREESPACE_FILE = "freespace.json"
-EVALUATION_FILE = "evaluation.json"
 SUCCESS_TARGET = 0.9
 WINDOW = 5
 FIRST_ITERATIONS = 10

@@ -46,6 +46,8 @@ from .rollout import EpisodeRecord, RolloutRunner
 
 LOG = logging.getLogger("learner_node.trainer")
 CHECKPOINT = "checkpoint.pt"
+EVALUATION_FILE = "evaluation.json"  # the deterministic controller on the held-out starts after training
+PRIOR_EVALUATION_FILE = "evaluation_prior.json"  # the same before iteration 1 (the learner node writes it)
 CHECKPOINT_FORMAT = 1
 EVAL_SEED_BASE = 1_000_000_000  # held-out evaluation starts: seeds >= this; training seeds are below
 # settings that may differ between a checkpoint and the run that resumes it
@@ -374,7 +376,7 @@ class Trainer:
         LOG.info("evaluation (deterministic, %d held-out starts): success %.2f, return %.1f, final distance %.4f m",
                  result["episodes"], result["success_rate"], result["return_mean"], result["final_distance_mean"])
         if self.out_dir is not None:
-            _atomic_write(self.out_dir / "evaluation.json", json.dumps(result, indent=1, default=_json_float))
+            _atomic_write(self.out_dir / EVALUATION_FILE, json.dumps(result, indent=1, default=_json_float))
         return result
 
 

@@ -11,8 +11,6 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
     """``summary.md``: settings, learning progress, evaluation, timings and the files of the run."""
     learner = run_dir / "learner"
     metrics = json.loads((learner / "metrics.json").read_text()) if (learner / "metrics.json").exists() else []
-    evaluation, prior = (json.loads((learner / name).read_text()) if (learner / name).exists() else None
-                         for name in ("evaluation.json", "evaluation_prior.json"))
     cfg = json.loads((learner / "config.json").read_text()) if (learner / "config.json").exists() else {}
     how = "sim and controller composed in one process" if composed else "sim and controller as two processes"
     lines = [f"# Run {run_dir.name}", "", f"Stack run with `{config}` over ROS 2 (lockstep simulation, {how}), "
@@ -31,14 +29,13 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
         lines.append("")
     else:
         lines += ["No iteration completed.", ""]
-    if prior or evaluation:
+    evaluations = learner_evaluations(learner)
+    if evaluations:
         lines += ["Deterministic controller on the held-out starts (no exploration):", "",
                   "| controller | starts | success | final distance (m) | return |", "|---|---|---|---|---|"]
-        for label, e in (("the prior (before iteration 1)", prior),
-                         (f"learned (after iteration {evaluation['iteration']})" if evaluation else "", evaluation)):
-            if e:
-                lines.append(f"| {label} | {e['episodes']} | {e['success_rate']:.2f} | "
-                             f"{e['final_distance_mean']:.4f} | {e['return_mean']:.1f} |")
+        for label, e in evaluations:
+            lines.append(f"| {label} | {e['episodes']} | {e['success_rate']:.2f} | "
+                         f"{e['final_distance_mean']:.4f} | {e['return_mean']:.1f} |")
         lines.append("")
     lines += bag_lines(run_dir / "bag")
     files = sorted(p.relative_to(run_dir) for p in run_dir.rglob("*") if p.is_file())
@@ -50,6 +47,20 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
     return path
 
 
+def learner_evaluations(learner: Path) -> list[tuple[str, dict]]:
+    """(label, evaluation) of the learner's deterministic evaluations in ``learner``: the prior's
+    (before iteration 1) and the learned controller's, those that exist."""
+    from learner_node.trainer import EVALUATION_FILE, PRIOR_EVALUATION_FILE
+
+    out = []
+    for name in (PRIOR_EVALUATION_FILE, EVALUATION_FILE):
+        if (learner / name).exists():
+            e = json.loads((learner / name).read_text())
+            out.append(("the prior (before iteration 1)" if name == PRIOR_EVALUATION_FILE
+                        else f"learned (after iteration {e['iteration']})", e))
+    return out
+
+
 def plot_curves(metrics_path: Path, out: Path, title: str) -> bool:
     """Learning curves of the run (``plots.plot_learning_curves``), with the deterministic controller
     on the held-out starts before and after training as points when the learner evaluated them
@@ -59,13 +70,8 @@ def plot_curves(metrics_path: Path, out: Path, title: str) -> bool:
         return False
     from learner_node.plots import plot_learning_curves
 
-    points = []
-    for name, label in (("evaluation_prior.json", "prior, held-out, deterministic"),
-                        ("evaluation.json", "learned, held-out, deterministic")):
-        path = metrics_path.parent / name
-        if path.exists():
-            e = json.loads(path.read_text())
-            points.append((label, float(e["iteration"]), e))
+    points = [(f"{'prior' if e['iteration'] == 0 else 'learned'}: held-out, deterministic", float(e["iteration"]), e)
+              for _, e in learner_evaluations(metrics_path.parent)]
     plot_learning_curves([rows], out, title, label="this run (training rollouts)", evaluations=points)
     return True
 
