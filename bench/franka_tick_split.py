@@ -40,12 +40,13 @@ sys.path[:0] = [str(HERE.parent / p) for p in ("nf_controller_node", "franka_dri
 
 from franka_driver.robot_model import identify  # noqa: E402
 from franka_driver.simulator import HOST, FrankySim  # noqa: E402
-from franka_driver.thread_priority import AUTO, apply, current_thread_policy, open_robot, resolve_priority  # noqa: E402
+from franka_driver.thread_priority import open_robot  # noqa: E402
 from nf_controller_node import panda_spec  # noqa: E402
 from nf_controller_node.control_loop import ControlLoop, LoopConfig  # noqa: E402
 from nf_controller_node.flow_spec import FlowArchitecture  # noqa: E402
 from nf_controller_node.host import ControllerHost  # noqa: E402
 from nf_controller_node.policy_params import PolicyParameters  # noqa: E402
+from nf_controller_node.thread_priority import AUTO, apply, current_thread_policy, resolve_priority  # noqa: E402
 from nf_controller_node.torque_law import TorqueLawConfig  # noqa: E402
 
 

@@ -1,8 +1,9 @@
 """Run every benchmark in sequence (never in parallel: the machine has 2 cores) and collect JSON.
 
 Each benchmark writes bench/results/<name>.json; this prints a one-line summary per target.
-Usage: python bench/run_all.py [--quick]   (the realtime benchmark alone takes 11 minutes, the Franka
-driver's 10; --quick: 1 minute and 30 s)
+Usage: python bench/run_all.py [--quick]   (the realtime benchmark alone takes about 27 minutes: 10
+composed and 10 over topics, plus its shorter phases; the Franka driver's 10; --quick: about 4 minutes
+and 30 s)
 """
 
 from __future__ import annotations
@@ -59,6 +60,12 @@ def _realtime_line(realtime: dict) -> str:
         line += (f"\n   the same without the cache warm-up ({realtime['seconds']['composed_cold']:.0f} s): median "
                  f"{cold['p50_us']:.0f} us, p99 {cold['p99_us']:.0f} us, late ticks "
                  f"{100 * cold['late_fraction']:.3f} %")
+    normal = realtime.get("composed_normal")
+    if normal:
+        line += (f"\n   the same with the driver thread at normal scheduling instead of "
+                 f"{k.get('loop_scheduling', '?')} ({realtime['seconds']['composed_normal']:.0f} s): p99 "
+                 f"{normal['p99_us']:.0f} us, late ticks {100 * normal['late_fraction']:.3f} %, longest run "
+                 f"{normal['longest_late_run']}")
     if floor:
         line += (f"\n   this machine's wake-up floor (a loop with no work): more than 1 ms late "
                  f"{100 * floor['asleep']['late_1ms_fraction']:.3f} % asleep, "

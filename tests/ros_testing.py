@@ -42,6 +42,17 @@ def ros_env(domain_id: int, **extra: str) -> dict[str, str]:
     return env
 
 
+def thread_policies(pid: int) -> dict[int, int]:
+    """Scheduling policy (``os.SCHED_*``) of every thread of process ``pid``, by thread id."""
+    out = {}
+    for tid in map(int, os.listdir(f"/proc/{pid}/task")):
+        try:
+            out[tid] = os.sched_getscheduler(tid)
+        except OSError:  # the thread ended meanwhile
+            pass
+    return out
+
+
 class RosProcess:
     """A child Python process in a given ROS domain; stopped (SIGINT, then SIGKILL) by its PID.
     ``prefix``: a command that execs Python in its own place (``setpriv ...``: same PID)."""

@@ -19,10 +19,10 @@ from nf_msgs.msg import ControllerStatus
 from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
 from sensor_msgs.msg import JointState
 
-from franka_driver.thread_priority import check_priority_allowed
+from nf_controller_node.thread_priority import check_priority_allowed
 
 from franky import FrankySim
-from ros_testing import REPO, RosProcess, allocate_domain_id
+from ros_testing import REPO, RosProcess, allocate_domain_id, thread_policies
 from test_nodes import LATCHED, RELIABLE, Probe, diag_values, policy_msg
 
 pytestmark = pytest.mark.ros
@@ -41,17 +41,6 @@ def franka_stack(domain: int, log: Path, *extra: str) -> RosProcess:
     """``nf_franka_stack --ros-args --params-file config/franka.yaml`` pointed at the simulator."""
     return RosProcess(["-m", "franka_driver.stack", "--ros-args", "--params-file", CONFIG, *SIM_ROBOT, *extra],
                       domain, log)
-
-
-def _thread_policies(pid: int) -> dict[int, int]:
-    """Scheduling policy of every thread of process ``pid`` (by thread id)."""
-    out = {}
-    for tid in map(int, os.listdir(f"/proc/{pid}/task")):
-        try:
-            out[tid] = os.sched_getscheduler(tid)
-        except OSError:  # the thread ended meanwhile
-            pass
-    return out
 
 
 def _mode_changes(statuses: list, t0: float) -> list[tuple[float, int]]:
@@ -115,8 +104,8 @@ def test_stack_holds_without_a_policy_then_follows_one(tmp_path):
             assert last and last[-1]["arm"] == "fr3" and last[-1]["in_error"] == "False", last[-1:]
             assert last[-1]["loop_scheduling"] == (f"fifo {priority}" if priority else "other 0"), last[-1]
             # and only the loop's thread: libfranka's Robot() left the executor thread at FIFO 99 before
-            fifo = [tid for tid, policy in _thread_policies(stack.pid).items() if policy == os.SCHED_FIFO]
-            assert _thread_policies(stack.pid)[stack.pid] == os.SCHED_OTHER  # the executor (main) thread
+            fifo = [tid for tid, policy in thread_policies(stack.pid).items() if policy == os.SCHED_FIFO]
+            assert thread_policies(stack.pid)[stack.pid] == os.SCHED_OTHER  # the executor (main) thread
             assert len(fifo) == (1 if priority else 0), fifo
             print(f"over ROS: {error() * 1e3:.2f} mm from x_ref; driver diagnostics {last[-1]}")
         assert stack.proc.returncode == 0, stack.log()

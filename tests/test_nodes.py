@@ -5,6 +5,7 @@ controller dies."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import time
@@ -26,8 +27,9 @@ from std_msgs.msg import Float64MultiArray
 from nf_controller_node.flow_spec import FlowArchitecture
 from nf_controller_node.panda_spec import TORQUE_LIMITS
 from nf_controller_node.policy_params import PolicyParameters
+from nf_controller_node.thread_priority import check_priority_allowed, top_priority
 
-from ros_testing import REPO, RosProcess, allocate_domain_id
+from ros_testing import REPO, RosProcess, allocate_domain_id, thread_policies
 
 pytestmark = pytest.mark.ros
 
@@ -237,7 +239,9 @@ def test_realtime_sim_holds_arm_when_controller_is_killed(probe_and_domain, tmp_
 
 def test_composed_realtime_stack_times_its_ticks(probe_and_domain, tmp_path: Path):
     """nf_sim_stack in realtime mode: the sim is the driver, steps on its own 1 kHz schedule and
-    times every tick (``TickTiming``); at shutdown the tick log and its summary are written."""
+    times every tick (``TickTiming``); at shutdown the tick log and its summary are written. The
+    driver thread, and no other, runs at SCHED_FIFO 99 where the system allows it (``rt_priority``
+    auto), and /diagnostics says so."""
     probe, domain = probe_and_domain
     diags = probe.collect(DiagnosticArray, "/diagnostics", RELIABLE, lambda m: diag_values(m, "sim_bridge"))
     log = tmp_path / "ticks.npy"
@@ -247,6 +251,12 @@ def test_composed_realtime_stack_times_its_ticks(probe_and_domain, tmp_path: Pat
     with RosProcess(args, domain, tmp_path / "stack.log") as stack:
         assert probe.spin_until(lambda: any(v and int(v.get("ticks", 0)) > 2000 for _, v in diags), 60.0), \
             stack.log()
+        allowed = check_priority_allowed(top_priority()) == ""
+        scheduling = [v["loop_scheduling"] for _, v in diags if v and "loop_scheduling" in v][-1]
+        assert scheduling == (f"fifo {top_priority()}" if allowed else "other 0"), scheduling
+        policies = thread_policies(stack.pid)
+        assert policies[stack.pid] == os.SCHED_OTHER  # the executor (main) thread
+        assert sum(p == os.SCHED_FIFO for p in policies.values()) == (1 if allowed else 0), policies
         assert stack.stop() == 0, stack.log()
     summary = json.loads(log.with_suffix(".json").read_text())
     latencies, periods = np.load(log), np.load(log.with_suffix(".periods.npy"))
@@ -262,6 +272,11 @@ def test_composed_realtime_stack_times_its_ticks(probe_and_domain, tmp_path: Pat
 @pytest.mark.parametrize(("args", "reason"), [
     ([*SIM, "-p", "mode:=fast"], "mode must be one of"),
     ([*SIM, "-p", "mode:=realtime", "-p", "response_log:=/proc/no/such/latency.npy"], "response_log: cannot create"),
+    # a realtime priority where it would set nothing (lockstep, or the standalone bridge's executor tick)
+    ([*SIM, "-p", "rt_priority:=10"], "applies to the composed realtime loop only (mode realtime)"),
+    ([*SIM, "-p", "mode:=realtime", "-p", "rt_priority:=10"], "the standalone bridge ticks on its executor"),
+    (["-m", "nf_bringup.sim_stack", "--ros-args", "-p", "sim_bridge:task:=free", "-p", "sim_bridge:mode:=realtime",
+      "-p", "sim_bridge:rt_priority:=150"], "rt_priority must be -1"),
     ([*CONTROLLER, "-p", "held_part:=anvil"], "held_part must be"),
     # a -p whose type differs from the parameters file's: rcl keeps the file's value without a word
     ([*CONTROLLER, "--params-file", str(REPO / "config" / "gear.yaml"), "-p", "nf_controller:hold_damping:=soft"],

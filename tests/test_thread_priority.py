@@ -1,4 +1,4 @@
-"""The torque loop thread's realtime priority (``franka_driver.thread_priority``, the driver's
+"""The 1 kHz loop thread's realtime priority (``nf_controller_node.thread_priority``, the drivers'
 ``rt_priority``): libfranka's ``Robot()`` puts its calling thread at SCHED_FIFO 99 (checked here
 against franky-sim) and ``open_robot`` gives it back; the priority is resolved from the parameter,
 set by the kernel on the loop's thread only, and refused with a clear error (exit 2, before any
@@ -12,15 +12,16 @@ import shutil
 import subprocess
 import sys
 import threading
+import time
 
 import pytest
 
-from franka_driver.thread_priority import (
+from franka_driver.thread_priority import open_robot
+from nf_controller_node.thread_priority import (
     AUTO,
     apply,
     check_priority_allowed,
     current_thread_policy,
-    open_robot,
     resolve_priority,
 )
 
@@ -82,9 +83,9 @@ def test_the_kernel_refusing_fifo_gives_a_message_that_says_what_to_do():
     prefix = _without_sys_nice()
     if prefix is None:
         pytest.skip("cannot take the realtime privilege away from a child process here")
-    source = str(REPO / "franka_driver")
+    source = str(REPO / "nf_controller_node")
     code = (f"import sys; sys.path.insert(0, {source!r}); "
-            "from franka_driver.thread_priority import check_priority_allowed; print(check_priority_allowed(10))")
+            "from nf_controller_node.thread_priority import check_priority_allowed; print(check_priority_allowed(10))")
     out = subprocess.run([*prefix, sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert "cannot run the torque loop at SCHED_FIFO priority 10" in out.stdout, out.stdout
@@ -141,3 +142,26 @@ def test_libfranka_raises_its_callers_priority_and_open_robot_gives_it_back(tmp_
         thread.join(60.0)
     assert out["bare"] == ("fifo", TOP), out
     assert out["opened"] == ("other", 0) and len(out["q"]) == 7, out
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize(("priority", "expected", "code"), [
+    ("10", "cannot run the composed realtime loop at SCHED_FIFO priority 10", 2),  # asked for: refused
+    ("-1", "driver thread (realtime): scheduling other 0", 0),  # auto: normal scheduling, said so
+])
+def test_the_composed_realtime_sim_takes_a_priority_only_where_the_system_gives_it(priority, expected, code,
+                                                                                    tmp_path):
+    prefix = _without_sys_nice()
+    if prefix is None:
+        pytest.skip("cannot take the realtime privilege away from a child process here")
+    args = ["-m", "nf_bringup.sim_stack", "--ros-args", "-p", "sim_bridge:task:=free",
+            "-p", "sim_bridge:mode:=realtime", "-p", f"sim_bridge:rt_priority:={priority}",
+            "-p", "nf_controller:idle_mode:=hold"]
+    with RosProcess(args, allocate_domain_id(), tmp_path / "stack.log", prefix=prefix) as stack:
+        if code:  # refused: the process ends by itself
+            stack.proc.wait(60.0)
+        deadline = time.monotonic() + 60.0
+        while stack.alive() and expected not in stack.log() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        returncode = stack.stop() if stack.alive() else stack.proc.returncode
+    assert returncode == code and expected in stack.log(), stack.log()

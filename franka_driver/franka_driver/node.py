@@ -2,7 +2,8 @@
 the flow controller in the same process.
 
 The node connects to the robot (``robot_ip``; ``realtime`` enforce | ignore; ``rt_priority``, the
-torque loop thread's SCHED_FIFO priority: ``franka_driver.thread_priority``), identifies the arm
+torque loop thread's SCHED_FIFO priority: ``nf_controller_node.thread_priority``; libfranka's own
+raise of its caller's: ``franka_driver.thread_priority``), identifies the arm
 against the robot's own dynamics model (``franka_driver.robot_model``), builds the controller's
 Pinocchio model of that arm, and runs ``franka_driver.loop.FrankaDriverLoop`` on a driver thread:
 per tick readOnce -> controller -> writeOnce. It is always composed with an ``nf_controller``
@@ -37,10 +38,17 @@ from nf_controller_node import topics
 from nf_controller_node.panda_spec import HELD_PART_NAMES, held_part_by_name
 from nf_controller_node.ros_runtime import declare_read_only
 from nf_controller_node.serialized_message import SerializedMessage
+from nf_controller_node.thread_priority import (
+    AUTO,
+    apply,
+    check_priority_allowed,
+    current_thread_policy,
+    resolve_priority,
+)
 
 from .loop import DriverConfig, FrankaDriverLoop, summary_us
 from .robot_model import ROBOT_KINDS, Identification, WrongRobotModelError, identify
-from .thread_priority import AUTO, apply, check_priority_allowed, current_thread_policy, open_robot, resolve_priority
+from .thread_priority import open_robot
 
 _D = DriverConfig()
 PARAMETERS = {

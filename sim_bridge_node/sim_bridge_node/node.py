@@ -21,6 +21,9 @@ process and the bridge calls it directly every step on a driver thread
 (``sim_bridge_node.composed``); the node still publishes ``joint_states``, ``clock``,
 ``task_status``, ``/diagnostics`` and, for bags and re-simulation, the applied command on
 ``effort_controller/commands`` (labelled with the state it answers), and serves ``~/reset``.
+In realtime mode the driver thread, and only it, runs at the SCHED_FIFO priority ``rt_priority``
+gives (``nf_controller_node.thread_priority``; auto: 99 when the system allows it), as the Franka
+driver's torque loop does.
 """
 
 from __future__ import annotations
@@ -46,6 +49,13 @@ from nf_controller_node import topics
 from nf_controller_node.host import ControllerHost
 from nf_controller_node.ros_runtime import declare_read_only, run_node
 from nf_controller_node.serialized_message import SerializedMessage
+from nf_controller_node.thread_priority import (
+    AUTO,
+    apply,
+    check_priority_allowed,
+    current_thread_policy,
+    resolve_priority,
+)
 from nf_controller_node.topics import parse_stamp_label
 from sim_bridge_node.bridge import ACCEPTED, BridgeConfig, SimBridge
 from sim_bridge_node.composed import SimDriverLoop, latencies_us
@@ -72,6 +82,9 @@ PARAMETERS = {
     "realtime_warm": (True, "composed realtime: before the spin, run the controller's compiled step on the last "
                             "state into scratch buffers so the next tick finds it in the caches (no effect on "
                             "torques)"),
+    "rt_priority": (AUTO, "composed realtime: SCHED_FIFO priority of the driver thread (only): -1 auto (99 if the "
+                          "system allows it, else normal scheduling), 0 normal, 1..99 required; lockstep and the "
+                          "standalone bridge run at normal scheduling"),
     "diagnostics_period": (1.0, "s of wall time between /diagnostics messages"),
     "response_log": ("", "realtime: every latency to this .npy (+ .json summary) at shutdown; folder checked at start"),
 }
@@ -92,6 +105,9 @@ def _check(p: dict) -> None:
             raise ValueError(f"{name} must be >= 0, got {p[name]}")
     if not 0.0 <= p["realtime_spin"] <= 0.0005:
         raise ValueError(f"realtime_spin must be between 0 and 0.0005 s (half a period), got {p['realtime_spin']}")
+    if p["rt_priority"] > 0 and p["mode"] != "realtime":  # asked for, but it would set nothing: say so
+        raise ValueError(f"rt_priority {p['rt_priority']} applies to the composed realtime loop only (mode "
+                         f"realtime); lockstep runs at normal scheduling: leave it at -1 or set 0")
     if p["response_log"]:  # fail now, not after a long run when the log is written at shutdown
         folder = Path(p["response_log"]).parent
         try:
@@ -117,6 +133,16 @@ class SimBridgeNode(Node):
         self.bridge = SimBridge(InsertionEnv(p["task"], plane=p["block_plane"]), config)
         self.bridge.reset(seed=p["seed"])
         self.lockstep = p["mode"] == "lockstep"
+        if host is None and p["rt_priority"] > 0:
+            raise ValueError(f"rt_priority {p['rt_priority']} applies to the composed realtime loop only "
+                             "(nf_sim_stack): the standalone bridge ticks on its executor")
+        # the driver thread's scheduling, checked now (composed realtime only): never dropped silently
+        self.rt_priority, required = (0, False) if host is None or self.lockstep else \
+            resolve_priority(p["rt_priority"], realtime_enforced=False)
+        refused = check_priority_allowed(self.rt_priority, "the composed realtime loop") if required else ""
+        if refused:
+            raise ValueError(refused)
+        self.loop_scheduling = "not started"
         dt = self.bridge.dt
         self._status_every = max(1, round(1.0 / (p["task_status_rate"] * dt))) if p["task_status_rate"] else 0
         self._clock_every = max(1, round(p["clock_period"] / dt))
@@ -190,6 +216,13 @@ class SimBridgeNode(Node):
         self._driver_thread.start()
 
     def _drive(self) -> None:
+        try:
+            apply(self.rt_priority)  # checked at start-up (0: normal scheduling, also when inherited)
+        except OSError as exc:  # the system changed its mind since: say so, run at normal priority
+            self.get_logger().error(f"driver loop at normal scheduling: SCHED_FIFO {self.rt_priority} refused: {exc}")
+        policy, priority = current_thread_policy()
+        self.loop_scheduling = f"{policy} {priority}"
+        self.get_logger().info(f"driver thread ({self.params['mode']}): scheduling {self.loop_scheduling}")
         try:
             self.driver.run(self._driver_stop)
         except Exception as exc:  # the loop must not die silently: say why, the arm stops stepping
@@ -321,6 +354,8 @@ class SimBridgeNode(Node):
             lat = latency_summary(self.timing.take_window())
             values.update({f"response_{k}": f"{v:.1f}" for k, v in lat.items()})
             values.update(self.timing.counters())
+        if self.driver is not None:
+            values["loop_scheduling"] = self.loop_scheduling
         timing = self.driver.timing if self.driver is not None else None
         if timing is not None:
             lat = latencies_us(timing.take_window())
