@@ -16,11 +16,14 @@ from learner_node.train_cli import main as train_main
 from learner_node.trainer import (
     CHECKPOINT,
     EVAL_SEED_BASE,
+    EVALUATION_FILE,
+    PRIOR_EVALUATION_FILE,
     Trainer,
     build_policy,
     make_evaluator,
     metrics_without_timing,
     policy_sigma,
+    run_evaluations,
 )
 from nf_controller_node.reward import REWARD_TERMS, RewardWeights, reward_terms
 
@@ -113,6 +116,32 @@ def test_checkpoint_resume_reproduces_the_next_iteration_exactly(tmp_path):
     rows = list(csv.DictReader((tmp_path / "resumed" / "metrics.csv").open()))
     assert [float(r["iteration"]) for r in rows] == [1.0, 2.0]
     assert len(json.loads((tmp_path / "resumed" / "metrics.json").read_text())) == 2
+
+
+def test_the_prior_is_evaluated_first_on_the_final_starts_without_changing_the_training(tmp_path):
+    """``train`` shows where a run began: the untrained policy on the final evaluation's held-out
+    starts (evaluation_prior.json, iteration 0), as the learner node does over ROS. It draws nothing
+    from the training's random streams: the run that follows is the one without it, to the bit; a
+    resumed run does not repeat it."""
+    sets = [f"--set={k}={v}" for k, v in TINY.items() if k not in ("task", "iterations")]
+    cli = ["--task", "block", "--iterations", "2", "--no-progress", *sets]
+    assert train_main([*cli, "--out", str(tmp_path / "with")]) == 0
+    assert train_main([*cli, "--out", str(tmp_path / "without"), "--no-prior-eval"]) == 0
+    prior = json.loads((tmp_path / "with" / PRIOR_EVALUATION_FILE).read_text())
+    final = json.loads((tmp_path / "with" / EVALUATION_FILE).read_text())
+    assert not (tmp_path / "without" / PRIOR_EVALUATION_FILE).exists()
+    assert prior["iteration"] == 0 and final["iteration"] == 2 and prior["episodes"] == TINY["eval_episodes"]
+    assert [e["start_seed"] for e in prior["per_episode"]] == [e["start_seed"] for e in final["per_episode"]]
+    assert prior["per_episode"] != final["per_episode"]  # the policy did change in between
+    histories = [json.loads((tmp_path / run / "metrics.json").read_text()) for run in ("with", "without")]
+    assert [metrics_without_timing(r) for r in histories[0]] == [metrics_without_timing(r) for r in histories[1]]
+    assert json.loads((tmp_path / "without" / EVALUATION_FILE).read_text())["per_episode"] == final["per_episode"]
+    assert [label for label, _ in run_evaluations(tmp_path / "with")] == [
+        "the prior (before iteration 1)", "learned (after iteration 2)"]
+    (tmp_path / "with" / PRIOR_EVALUATION_FILE).unlink()  # a resume (here: to iteration 3) does not redo it
+    assert train_main([*cli[:2], *cli[4:], "--iterations", "3", "--out", str(tmp_path / "with")]) == 0
+    assert not (tmp_path / "with" / PRIOR_EVALUATION_FILE).exists()
+    assert json.loads((tmp_path / "with" / EVALUATION_FILE).read_text())["iteration"] == 3
 
 
 def test_resume_refuses_a_checkpoint_of_other_settings(tmp_path):

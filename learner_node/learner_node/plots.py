@@ -95,6 +95,13 @@ def plot_learning_curves(histories: Sequence[Sequence[Mapping[str, float]]], pat
     return plot_learning_curve_groups({label: histories}, path, title, evaluations)
 
 
+def evaluation_points(evaluations: Sequence[tuple[str, Mapping]]) -> list[tuple[str, float, Mapping]]:
+    """``plot_learning_curves``'s ``evaluations`` from a run's (label, evaluation) pairs
+    (``trainer.run_evaluations``): the prior's and the learned controller's held-out results."""
+    return [(f"{'prior' if e['iteration'] == 0 else 'learned'}: held-out, deterministic", float(e["iteration"]), e)
+            for _, e in evaluations]
+
+
 def plot_final_distance_distribution(groups: Mapping[str, Sequence[float]], path: str | Path,
                                      title: str = "") -> Path:
     """Histogram of final end-effector distances to the goal (m), one per group, same bins. Writes ``path``."""

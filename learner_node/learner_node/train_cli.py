@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from .config import TrainConfig, read_yaml_params
-from .trainer import CHECKPOINT, Trainer
+from .trainer import CHECKPOINT, Trainer, run_evaluations
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -29,7 +29,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="any other TrainConfig setting, e.g. --set rollouts_per_iter=8 (repeatable)")
     ap.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint in --out and start over")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
-    ap.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
+    ap.add_argument("--no-eval", action="store_true", help="skip the evaluations (the prior's and the final)")
+    ap.add_argument("--no-prior-eval", action="store_true",
+                    help="skip the prior's evaluation before iteration 1 (on the final evaluation's held-out starts)")
     ap.add_argument("-v", "--verbose", action="store_true", help="log every iteration's metrics")
     return ap
 
@@ -70,12 +72,13 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"train: error: {exc}", file=sys.stderr)
         return 2
-    trainer.run(evaluate=not args.no_eval)
+    trainer.run(evaluate=not args.no_eval, evaluate_prior=not args.no_prior_eval)
     if trainer.history:
-        from .plots import plot_learning_curves
+        from .plots import evaluation_points, plot_learning_curves
 
         title = f"{cfg.policy}-PPO on {cfg.task}, sigma_init {cfg.sigma_init:g}, seed {cfg.seed}"
-        path = plot_learning_curves([trainer.history], args.out / "learning_curves.png", title, label="this run")
+        path = plot_learning_curves([trainer.history], args.out / "learning_curves.png", title, label="this run",
+                                    evaluations=evaluation_points(run_evaluations(args.out)))
         logging.info("learning curves: %s", path)
     return 0
 

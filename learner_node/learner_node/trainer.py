@@ -47,7 +47,7 @@ from .rollout import EpisodeRecord, RolloutRunner
 LOG = logging.getLogger("learner_node.trainer")
 CHECKPOINT = "checkpoint.pt"
 EVALUATION_FILE = "evaluation.json"  # the deterministic controller on the held-out starts after training
-PRIOR_EVALUATION_FILE = "evaluation_prior.json"  # the same before iteration 1 (the learner node writes it)
+PRIOR_EVALUATION_FILE = "evaluation_prior.json"  # the same before iteration 1
 CHECKPOINT_FORMAT = 1
 EVAL_SEED_BASE = 1_000_000_000  # held-out evaluation starts: seeds >= this; training seeds are below
 # settings that may differ between a checkpoint and the run that resumes it
@@ -349,13 +349,23 @@ class Trainer:
             writer.writerows(self.history)
         os.replace(tmp, self.out_dir / "metrics.csv")
 
-    def run(self, evaluate: bool = True) -> dict[str, Any] | None:
-        """Train until ``cfg.iterations`` (metrics and a checkpoint after every iteration), then evaluate."""
+    def run(self, evaluate: bool = True, evaluate_prior: bool = True) -> dict[str, Any] | None:
+        """Train until ``cfg.iterations`` (metrics and a checkpoint after every iteration), then evaluate.
+        With ``evaluate`` and ``evaluate_prior``, a run that starts at iteration 0 with an output folder
+        first evaluates the untrained policy on the same held-out starts (``PRIOR_EVALUATION_FILE``),
+        as the learner node does over ROS; it changes nothing in the training that follows."""
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             _atomic_write(self.out_dir / "config.json", json.dumps(self.cfg.to_dict(), indent=1))
         LOG.info("training %s-PPO on %s, iterations %d..%d\n%s", self.cfg.policy, self.cfg.task,
                  self.iteration + 1, self.cfg.iterations, self.cfg.table())
+        if evaluate and evaluate_prior and self.cfg.eval_episodes and self.iteration == 0 \
+                and self.out_dir is not None and not (self.out_dir / PRIOR_EVALUATION_FILE).exists():
+            prior = self.evaluate()
+            LOG.info("the prior (deterministic, %d held-out starts): success %.2f, return %.1f, final distance "
+                     "%.4f m", prior["episodes"], prior["success_rate"], prior["return_mean"],
+                     prior["final_distance_mean"])
+            _atomic_write(self.out_dir / PRIOR_EVALUATION_FILE, json.dumps(prior, indent=1, default=_json_float))
         bar = tqdm(total=self.cfg.iterations, initial=self.iteration, disable=not self.progress,
                    desc=f"{self.cfg.policy}/{self.cfg.task}", unit="it")
         try:
@@ -378,6 +388,18 @@ class Trainer:
         if self.out_dir is not None:
             _atomic_write(self.out_dir / EVALUATION_FILE, json.dumps(result, indent=1, default=_json_float))
         return result
+
+
+def run_evaluations(run_dir: Path) -> list[tuple[str, dict[str, Any]]]:
+    """(label, evaluation) of the deterministic evaluations in a run folder: the prior's (before
+    iteration 1) and the learned controller's, those that exist."""
+    out = []
+    for name in (PRIOR_EVALUATION_FILE, EVALUATION_FILE):
+        if (run_dir / name).exists():
+            e = json.loads((run_dir / name).read_text())
+            out.append(("the prior (before iteration 1)" if name == PRIOR_EVALUATION_FILE
+                        else f"learned (after iteration {e['iteration']})", e))
+    return out
 
 
 def _json_float(value: Any) -> Any:

@@ -50,15 +50,9 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
 def learner_evaluations(learner: Path) -> list[tuple[str, dict]]:
     """(label, evaluation) of the learner's deterministic evaluations in ``learner``: the prior's
     (before iteration 1) and the learned controller's, those that exist."""
-    from learner_node.trainer import EVALUATION_FILE, PRIOR_EVALUATION_FILE
+    from learner_node.trainer import run_evaluations
 
-    out = []
-    for name in (PRIOR_EVALUATION_FILE, EVALUATION_FILE):
-        if (learner / name).exists():
-            e = json.loads((learner / name).read_text())
-            out.append(("the prior (before iteration 1)" if name == PRIOR_EVALUATION_FILE
-                        else f"learned (after iteration {e['iteration']})", e))
-    return out
+    return run_evaluations(learner)
 
 
 def plot_curves(metrics_path: Path, out: Path, title: str) -> bool:
@@ -68,11 +62,10 @@ def plot_curves(metrics_path: Path, out: Path, title: str) -> bool:
     rows = json.loads(metrics_path.read_text()) if metrics_path.exists() else []
     if not rows:
         return False
-    from learner_node.plots import plot_learning_curves
+    from learner_node.plots import evaluation_points, plot_learning_curves
 
-    points = [(f"{'prior' if e['iteration'] == 0 else 'learned'}: held-out, deterministic", float(e["iteration"]), e)
-              for _, e in learner_evaluations(metrics_path.parent)]
-    plot_learning_curves([rows], out, title, label="this run (training rollouts)", evaluations=points)
+    plot_learning_curves([rows], out, title, label="this run (training rollouts)",
+                         evaluations=evaluation_points(learner_evaluations(metrics_path.parent)))
     return True
 
 
