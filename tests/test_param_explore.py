@@ -68,7 +68,7 @@ def test_update_moves_the_gains_toward_the_better_draws():
     policy, explorer = _policy()
     opt = make_param_optimizer(explorer, 0.1, 0.01)
     rng = np.random.default_rng(1)
-    z0 = float(policy.ln_s[2])
+    z0 = float(policy.ln_s[2].detach())
     for _ in range(5):
         theta, _ = explorer.sample(14, rng)
         adv = paired_advantages(-theta[:, 2])
