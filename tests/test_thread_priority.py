@@ -22,6 +22,7 @@ from nf_controller_node.thread_priority import (
     apply,
     check_priority_allowed,
     current_thread_policy,
+    enter_loop_thread,
     resolve_priority,
 )
 
@@ -85,11 +86,14 @@ def test_the_kernel_refusing_fifo_gives_a_message_that_says_what_to_do():
         pytest.skip("cannot take the realtime privilege away from a child process here")
     source = str(REPO / "nf_controller_node")
     code = (f"import sys; sys.path.insert(0, {source!r}); "
-            "from nf_controller_node.thread_priority import check_priority_allowed; print(check_priority_allowed(10))")
+            "from nf_controller_node.thread_priority import check_priority_allowed, enter_loop_thread; "
+            "print(check_priority_allowed(10)); print(enter_loop_thread(10))")
     out = subprocess.run([*prefix, sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert "cannot run the torque loop at SCHED_FIFO priority 10" in out.stdout, out.stdout
     assert "rtprio" in out.stdout and "rt_priority:=0" in out.stdout, out.stdout
+    # a refusal as the loop thread starts (after a check that passed) leaves it at normal scheduling, said so
+    assert "('other 0', 'SCHED_FIFO 10 refused: [Errno 1] Operation not permitted')" in out.stdout, out.stdout
 
 
 @pytest.mark.ros
@@ -165,3 +169,16 @@ def test_the_composed_realtime_sim_takes_a_priority_only_where_the_system_gives_
             time.sleep(0.1)
         returncode = stack.stop() if stack.alive() else stack.proc.returncode
     assert returncode == code and expected in stack.log(), stack.log()
+
+
+def test_the_loop_thread_says_how_it_runs_and_why_a_priority_did_not_take():
+    out: list[tuple[str, str]] = []
+    thread = threading.Thread(target=lambda: out.append(enter_loop_thread(0)))
+    thread.start()
+    thread.join()
+    assert out == [("other 0", "")]
+    if ALLOWED:
+        thread = threading.Thread(target=lambda: out.append(enter_loop_thread(10)))
+        thread.start()
+        thread.join()
+        assert out[-1] == ("fifo 10", "")

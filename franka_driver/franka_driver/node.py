@@ -38,13 +38,7 @@ from nf_controller_node import topics
 from nf_controller_node.panda_spec import HELD_PART_NAMES, held_part_by_name
 from nf_controller_node.ros_runtime import declare_read_only
 from nf_controller_node.serialized_message import SerializedMessage
-from nf_controller_node.thread_priority import (
-    AUTO,
-    apply,
-    check_priority_allowed,
-    current_thread_policy,
-    resolve_priority,
-)
+from nf_controller_node.thread_priority import AUTO, check_priority_allowed, enter_loop_thread, resolve_priority
 
 from .loop import DriverConfig, FrankaDriverLoop, summary_us
 from .robot_model import ROBOT_KINDS, Identification, WrongRobotModelError, identify
@@ -219,12 +213,10 @@ class FrankaDriverNode(Node):
         self._thread.start()
 
     def _drive(self) -> None:
-        try:
-            apply(self.rt_priority)  # checked at start-up (0: normal scheduling, also when inherited)
-        except OSError as exc:  # the system changed its mind since: say so, run at normal priority
-            self.get_logger().error(f"torque loop at normal scheduling: SCHED_FIFO {self.rt_priority} refused: {exc}")
-        policy, priority = current_thread_policy()
-        self.loop_scheduling = f"{policy} {priority}"
+        # checked at start-up (0: normal scheduling, also when inherited)
+        self.loop_scheduling, refused = enter_loop_thread(self.rt_priority)
+        if refused:
+            self.get_logger().error(f"torque loop at normal scheduling: {refused}")
         self.get_logger().info(f"torque loop thread: scheduling {self.loop_scheduling}")
         try:
             self.driver.run(self._stop)

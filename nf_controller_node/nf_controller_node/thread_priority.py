@@ -47,6 +47,19 @@ def apply(priority: int) -> None:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))  # lowering is always allowed
 
 
+def enter_loop_thread(priority: int) -> tuple[str, str]:
+    """On the loop thread, as it starts: ``apply(priority)``. Returns (the thread's scheduling as
+    it now is, "fifo 99" or "other 0"; why the priority was refused, "" when it was not). A refusal
+    here (the system changed its mind since the start-up check) leaves normal scheduling."""
+    problem = ""
+    try:
+        apply(priority)
+    except OSError as exc:
+        problem = f"SCHED_FIFO {priority} refused: {exc}"
+    policy, value = current_thread_policy()
+    return f"{policy} {value}", problem
+
+
 def current_thread_policy() -> tuple[str, int]:
     """("fifo" | "other" | ..., priority) of the calling thread."""
     policy = os.sched_getscheduler(0)

@@ -49,13 +49,7 @@ from nf_controller_node import topics
 from nf_controller_node.host import ControllerHost
 from nf_controller_node.ros_runtime import declare_read_only, run_node
 from nf_controller_node.serialized_message import SerializedMessage
-from nf_controller_node.thread_priority import (
-    AUTO,
-    apply,
-    check_priority_allowed,
-    current_thread_policy,
-    resolve_priority,
-)
+from nf_controller_node.thread_priority import AUTO, check_priority_allowed, enter_loop_thread, resolve_priority
 from nf_controller_node.topics import parse_stamp_label
 from sim_bridge_node.bridge import ACCEPTED, BridgeConfig, SimBridge
 from sim_bridge_node.composed import SimDriverLoop, latencies_us
@@ -216,12 +210,10 @@ class SimBridgeNode(Node):
         self._driver_thread.start()
 
     def _drive(self) -> None:
-        try:
-            apply(self.rt_priority)  # checked at start-up (0: normal scheduling, also when inherited)
-        except OSError as exc:  # the system changed its mind since: say so, run at normal priority
-            self.get_logger().error(f"driver loop at normal scheduling: SCHED_FIFO {self.rt_priority} refused: {exc}")
-        policy, priority = current_thread_policy()
-        self.loop_scheduling = f"{policy} {priority}"
+        # checked at start-up (0: normal scheduling, also when inherited)
+        self.loop_scheduling, refused = enter_loop_thread(self.rt_priority)
+        if refused:
+            self.get_logger().error(f"driver loop at normal scheduling: {refused}")
         self.get_logger().info(f"driver thread ({self.params['mode']}): scheduling {self.loop_scheduling}")
         try:
             self.driver.run(self._driver_stop)
