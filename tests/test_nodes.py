@@ -274,6 +274,7 @@ def test_composed_realtime_stack_times_its_ticks(probe_and_domain, tmp_path: Pat
     ([*SIM, "-p", "mode:=realtime", "-p", "response_log:=/proc/no/such/latency.npy"], "response_log: cannot create"),
     # a realtime priority where it would set nothing (lockstep, or the standalone bridge's executor tick)
     ([*SIM, "-p", "rt_priority:=10"], "applies to the composed realtime loop only (mode realtime)"),
+    ([*SIM, "-p", "rt_priority:=-5"], "rt_priority must be -1 (auto)"),
     ([*SIM, "-p", "mode:=realtime", "-p", "rt_priority:=10"], "the standalone bridge ticks on its executor"),
     (["-m", "nf_bringup.sim_stack", "--ros-args", "-p", "sim_bridge:task:=free", "-p", "sim_bridge:mode:=realtime",
       "-p", "sim_bridge:rt_priority:=150"], "rt_priority must be -1"),

@@ -49,7 +49,13 @@ from nf_controller_node import topics
 from nf_controller_node.host import ControllerHost
 from nf_controller_node.ros_runtime import declare_read_only, run_node
 from nf_controller_node.serialized_message import SerializedMessage
-from nf_controller_node.thread_priority import AUTO, check_priority_allowed, enter_loop_thread, resolve_priority
+from nf_controller_node.thread_priority import (
+    AUTO,
+    check_priority_allowed,
+    enter_loop_thread,
+    resolve_priority,
+    top_priority,
+)
 from nf_controller_node.topics import parse_stamp_label
 from sim_bridge_node.bridge import ACCEPTED, BridgeConfig, SimBridge
 from sim_bridge_node.composed import SimDriverLoop, latencies_us
@@ -99,6 +105,9 @@ def _check(p: dict) -> None:
             raise ValueError(f"{name} must be >= 0, got {p[name]}")
     if not 0.0 <= p["realtime_spin"] <= 0.0005:
         raise ValueError(f"realtime_spin must be between 0 and 0.0005 s (half a period), got {p['realtime_spin']}")
+    if not AUTO <= p["rt_priority"] <= top_priority():
+        raise ValueError(f"rt_priority must be -1 (auto), 0 (normal scheduling) or 1..{top_priority()}, "
+                         f"got {p['rt_priority']}")
     if p["rt_priority"] > 0 and p["mode"] != "realtime":  # asked for, but it would set nothing: say so
         raise ValueError(f"rt_priority {p['rt_priority']} applies to the composed realtime loop only (mode "
                          f"realtime); lockstep runs at normal scheduling: leave it at -1 or set 0")
