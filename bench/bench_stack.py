@@ -9,8 +9,10 @@ trainer's same iteration (this machine's speed drifts by up to 2x within minutes
 iteration is also compared with the in-process one of its own round, ``pairwise_ratios``); then
 the floor of the two-process runtime (``pingpong.py``: a bare rclpy round trip between two
 processes, no work). Writes ``bench/results/stack.json``. Targets (issue 13):
-lockstep >= 10,000 steps/s (composed), an iteration over ROS <= 1.3x the one in process. The
-composed driver loop is also timed with no ROS at all (its ceiling).
+lockstep >= 10,000 steps/s (composed), an iteration over ROS <= 1.3x the one in process. Every
+round also runs the iteration's episodes through the composed driver loop with no ROS at all
+(``loop_alone_iteration``, its ceiling), which splits the ratio (``rollout_split``): the driver path
+(host, bridge, thread) over the in-process rollout, and ROS over the driver path.
 The settings are ``make run``'s (``config/gear_learn.yaml``) unless ``--config`` says otherwise.
 Usage: python bench/bench_stack.py [--quick] [--config config/gear.yaml]
 """
@@ -68,14 +70,14 @@ def ros_iteration(rollouts: int, seconds: float, domain: int, workdir: Path, com
 
 
 def in_process_iteration(rollouts: int, seconds: float, config: Path = CONFIG) -> dict:
-    """The same iteration in process (after one warm-up iteration compiles the kernels)."""
+    """The same iteration in process: iteration 1 of a fresh trainer, the very episodes the learner
+    runs in its iteration 1 (a first trainer's iteration compiles the kernels beforehand)."""
     from learner_node.config import TrainConfig
     from learner_node.trainer import Trainer
 
     cfg = TrainConfig.from_sources(config, {"rollouts_per_iter": rollouts, "episode_seconds": seconds})
-    trainer = Trainer(cfg)
-    trainer.train_iteration()
-    return trainer.train_iteration()
+    Trainer(cfg).train_iteration()
+    return Trainer(cfg).train_iteration()
 
 
 def gear_host(config: Path, idle_mode: str, overrides: dict | None = None) -> tuple:
@@ -131,6 +133,54 @@ def loop_alone(rollouts: int, seconds: float, config: Path = CONFIG) -> list[flo
     return rates
 
 
+def loop_alone_iteration(rollouts: int, seconds: float, config: Path = CONFIG) -> dict:
+    """The episodes of the trainer's iteration 1 (its starts and parameter draws, the work of the
+    learner's iteration 1 and of ``in_process_iteration``) through the composed driver loop with no
+    ROS: ``SimDriverLoop`` + ``ControllerHost`` on a thread, each rollout's parameters installed and
+    its episode started by hand, the main thread woken by the host's ``notify``. What the driver
+    path itself costs over the in-process rollout, and what ROS adds on top. Returns
+    {"rollout_seconds", "steps"}."""
+    import threading
+
+    from learner_node.trainer import Trainer, policy_sigma
+    from nf_controller_node.episode import EpisodeRun, EpisodeSpec
+    from nf_controller_node.host import EPISODE_END
+    from sim_bridge_node.bridge import SimBridge
+    from sim_bridge_node.composed import SimDriverLoop
+
+    cfg, env, host = gear_host(config, "pause", {"rollouts_per_iter": rollouts, "episode_seconds": seconds})
+    trainer = Trainer(cfg)
+    plan = trainer.episode_plan()
+    sigma = None if trainer.explorer is not None else policy_sigma(trainer.policy)
+    driver = SimDriverLoop(SimBridge(env), host, realtime=False)
+    woken = threading.Event()
+    host.notify = woken.set
+    stop = threading.Event()
+    thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)
+    thread.start()
+    steps = 0
+    try:
+        t0 = time.perf_counter()
+        for i, (start, noise, params) in enumerate(plan):
+            params = params if params is not None else trainer.policy.to_params()
+            params.version = i + 2  # gear_host installed version 1
+            host.call(lambda p=params: host.loop.set_policy(p)).result(timeout=60.0)
+            spec = EpisodeSpec(i, params.version, seconds, cfg.decision_period, 0.001, sigma, noise,
+                               params.x_ref.copy(), chunk_decisions=cfg.decisions_per_episode)
+            run = EpisodeRun(spec)
+            seed = trainer.runner.start_seed(start)
+            driver.begin_episode(-1 if seed is None else seed, run).result(timeout=60.0)
+            while not any(e.kind == EPISODE_END for e in host.drain()):
+                woken.wait(1.0)
+                woken.clear()
+            steps += run.steps
+        wall = time.perf_counter() - t0
+    finally:
+        stop.set()
+        thread.join(10.0)
+    return {"rollout_seconds": wall, "steps": steps}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="2 repeats of 3 short episodes")
@@ -145,8 +195,11 @@ def main() -> int:
     steps = rollouts * round(seconds / 0.001)
     rows: dict[str, list[dict]] = {"composed": [], "separate": []}
     local = []  # the in-process iteration, interleaved with the ROS ones: this machine's speed drifts
+    alone: list[dict] = []  # the same episodes through the composed driver loop without ROS
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(repeats):
+            # the composed iteration and its in-process and loop-without-ROS counterparts back to back
+            # (the pairwise ratios compare runs seconds apart); the slow two-process run last
             for j, how in enumerate(rows):
                 row = ros_iteration(rollouts, seconds, 150 + (os.getpid() + 2 * k + j) % 50, Path(tmp),
                                     composed=how == "composed", config=args.config,
@@ -155,10 +208,15 @@ def main() -> int:
                 print(f"over ROS, {how} {k + 1}/{repeats}: rollouts {row['rollout_seconds']:.2f} s "
                       f"({steps / row['rollout_seconds']:.0f} steps/s), update {row['update_seconds']:.2f} s",
                       flush=True)
-            local.append(in_process_iteration(rollouts, seconds, args.config))
-            print(f"in process {k + 1}/{repeats}: rollouts {local[-1]['rollout_seconds']:.2f} s "
-                  f"({steps / local[-1]['rollout_seconds']:.0f} steps/s), wall {local[-1]['wall_seconds']:.2f} s",
-                  flush=True)
+                if how != "composed":
+                    continue
+                local.append(in_process_iteration(rollouts, seconds, args.config))
+                print(f"in process {k + 1}/{repeats}: rollouts {local[-1]['rollout_seconds']:.2f} s "
+                      f"({steps / local[-1]['rollout_seconds']:.0f} steps/s), wall {local[-1]['wall_seconds']:.2f} s",
+                      flush=True)
+                alone.append(loop_alone_iteration(rollouts, seconds, args.config))
+                print(f"composed loop without ROS {k + 1}/{repeats}: rollouts {alone[-1]['rollout_seconds']:.2f} s "
+                      f"({alone[-1]['steps'] / alone[-1]['rollout_seconds']:.0f} steps/s)", flush=True)
     floor = []
     for k in range(repeats):  # the runtime's floor: a bare rclpy round trip between two processes
         env = dict(os.environ, ROS_DOMAIN_ID=str(150 + (os.getpid() + 7 + k) % 50),
@@ -168,10 +226,13 @@ def main() -> int:
         floor.append(json.loads(done.stdout.strip().splitlines()[-1]))
         print(f"rclpy ping-pong floor {k + 1}/{repeats}: {floor[-1]['round_trips_per_s']:.0f} round trips/s",
               flush=True)
-    alone = loop_alone(rollouts, seconds, args.config)
-    print(f"composed loop without ROS: median {statistics.median(alone):.0f} steps/s", flush=True)
     rates = [steps / r["rollout_seconds"] for r in rows["composed"]]
     ratios = [c["wall_seconds"] / i["wall_seconds"] for c, i in zip(rows["composed"], local, strict=True)]
+    rates_alone = [a["steps"] / a["rollout_seconds"] for a in alone]
+    # where the time goes, per round (same episodes, rollout time): the driver path without ROS
+    # over the in-process rollout, then ROS (nodes, DDS, the learner process, hand-overs) over it
+    alone_over_local = [a["rollout_seconds"] / i["rollout_seconds"] for a, i in zip(alone, local, strict=True)]
+    ros_over_alone = [c["rollout_seconds"] / a["rollout_seconds"] for c, a in zip(rows["composed"], alone, strict=True)]
     rates_separate = [steps / r["rollout_seconds"] for r in rows["separate"]]
     ros_wall = statistics.median(r["wall_seconds"] for r in rows["composed"])
     separate_wall = statistics.median(r["wall_seconds"] for r in rows["separate"])
@@ -187,9 +248,16 @@ def main() -> int:
         "lockstep_steps_per_s_separate": {"median": statistics.median(rates_separate), "min": min(rates_separate),
                                           "max": max(rates_separate), "all": rates_separate,
                                           "what": "sim_bridge and nf_controller as two processes over topics"},
-        "lockstep_steps_per_s_loop_alone": {"median": statistics.median(alone), "min": min(alone),
-                                            "max": max(alone), "all": alone,
-                                            "what": "the composed driver loop with no ROS (one per episode)"},
+        "lockstep_steps_per_s_loop_alone": {"median": statistics.median(rates_alone), "min": min(rates_alone),
+                                            "max": max(rates_alone), "all": rates_alone,
+                                            "what": "the composed driver loop with no ROS, the iteration's own "
+                                                    "episodes (one iteration per round)"},
+        "rollout_split": {"loop_alone_over_in_process": alone_over_local,
+                          "loop_alone_over_in_process_median": statistics.median(alone_over_local),
+                          "ros_over_loop_alone": ros_over_alone,
+                          "ros_over_loop_alone_median": statistics.median(ros_over_alone),
+                          "what": "rollout time per round, same episodes: the driver path without ROS over the "
+                                  "in-process rollout, then over ROS (composed) over the driver path without ROS"},
         "pingpong_floor": {"round_trips_per_s_median": statistics.median(f["round_trips_per_s"] for f in floor),
                            "median_us": statistics.median(f["median_us"] for f in floor), "all": floor,
                            "what": "bare rclpy round trip between two processes (bench/pingpong.py), no work"},
@@ -203,7 +271,8 @@ def main() -> int:
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1))
-    print(json.dumps(result["lockstep_steps_per_s"]), json.dumps(result["iteration_wall_s"]))
+    print(json.dumps(result["lockstep_steps_per_s"]), json.dumps(result["iteration_wall_s"]),
+          json.dumps(result["rollout_split"]))
     return 0
 
 
