@@ -269,6 +269,31 @@ def test_composed_realtime_stack_times_its_ticks(probe_and_domain, tmp_path: Pat
           f"late {summary['late_ticks']}")
 
 
+def test_composed_stack_publishes_monitoring_only_while_subscribed(probe_and_domain, tmp_path: Path):
+    """The composed sim publishes joint_states, the applied commands, clock and task_status only while
+    someone subscribes (the tick never reads them): with no subscriber they are counted as skipped in
+    /diagnostics; a subscriber that joins receives them within a fraction of a second."""
+    probe, domain = probe_and_domain
+    diags = probe.collect(DiagnosticArray, "/diagnostics", RELIABLE, lambda m: diag_values(m, "sim_bridge"))
+    args = ["-m", "nf_bringup.sim_stack", "--ros-args", "-p", "sim_bridge:task:=free",
+            "-p", "nf_controller:idle_mode:=hold", "-p", "sim_bridge:diagnostics_period:=0.2"]
+
+    def skipped() -> int:
+        return max((int(v["monitor_skipped"]) for _, v in diags if v and "monitor_skipped" in v), default=0)
+
+    with RosProcess(args, domain, tmp_path / "stack.log") as stack:
+        assert probe.spin_until(lambda: skipped() > 1000, 60.0), stack.log()
+        states = probe.collect(JointState, "/joint_states", SAMPLED)
+        joined = time.monotonic()
+        assert probe.spin_until(lambda: len(states) > 50, 10.0), stack.log()
+        first = states[0][0] - joined
+        assert stack.stop() == 0, stack.log()
+    assert first < 2.0, f"first joint state {first:.2f} s after subscribing"
+    assert all(len(m.position) == 7 and np.all(np.isfinite(m.position)) for _, m in states)
+    print(f"composed: {skipped()} monitoring messages skipped without subscribers; joint_states "
+          f"{1e3 * first:.0f} ms after subscribing")
+
+
 @pytest.mark.parametrize(("args", "reason"), [
     ([*SIM, "-p", "mode:=fast"], "mode must be one of"),
     ([*SIM, "-p", "mode:=realtime", "-p", "response_log:=/proc/no/such/latency.npy"], "response_log: cannot create"),

@@ -21,6 +21,9 @@ process and the bridge calls it directly every step on a driver thread
 (``sim_bridge_node.composed``); the node still publishes ``joint_states``, ``clock``,
 ``task_status``, ``/diagnostics`` and, for bags and re-simulation, the applied command on
 ``effort_controller/commands`` (labelled with the state it answers), and serves ``~/reset``.
+Nothing reads those four monitoring topics on the tick's path, so they go out only while they
+have a subscriber (looked up every ``LISTENERS_PERIOD``; ``/diagnostics`` counts what was left
+out as ``monitor_skipped``): a headless learning run does not pay for them.
 In realtime mode the driver thread, and only it, runs at the SCHED_FIFO priority ``rt_priority``
 gives (``nf_controller_node.thread_priority``; auto: 99 when the system allows it), as the Franka
 driver's torque loop does.
@@ -76,7 +79,8 @@ PARAMETERS = {
     "task_status_rate": (50.0, "task_status messages per s of simulated time (0: off)"),
     "clock_period": (0.001, "s of simulated time between clock messages (0: every step)"),
     "monitor_period": (0.0, "composed only: s of simulated time between joint_states and applied-command messages "
-                            "(0: every step; they are for monitoring and bags, the controller is called directly)"),
+                            "(0: every step; they are for monitoring and bags, the controller is called directly; "
+                            "published only while subscribed)"),
     "realtime_spin": (0.0003, "composed realtime: the last s of each 1 ms period waited awake without the GIL "
                               "instead of asleep (0: sleep only; costs up to that much CPU per period)"),
     "realtime_warm": (True, "composed realtime: before the spin, run the controller's compiled step on the last "
@@ -92,6 +96,8 @@ PARAMETERS = {
 STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)  # ros2_control's default
 PUBLISH_QOS = QoSProfile(depth=topics.PUBLISH_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
 _LATE_TICK = 2.0  # realtime: a tick later than this many periods counts as late
+LISTENERS_PERIOD = 0.2  # s, composed: how often the driver thread looks up who subscribes to its monitoring
+_ALL_LISTENED = (True, True, True, True)  # joint_states, applied commands, clock, task_status
 
 
 def _check(p: dict) -> None:
@@ -188,6 +194,12 @@ class SimBridgeNode(Node):
             on_command = self._on_command_lockstep if self.lockstep else self._on_command_realtime
             self.create_subscription(Float64MultiArray, topics.COMMANDS, on_command, qos)
 
+        # composed: the monitoring messages (joint states, applied commands, clock, task status) go
+        # out only while a topic has a subscriber; a headless learning run does not pay for them
+        # (bench/bench_stack.py), a recorder or plot that subscribes gets them within LISTENERS_PERIOD
+        self._listening = _ALL_LISTENED
+        self._listeners_due = 0.0
+        self.monitor_skipped = 0  # monitoring messages not published for want of a subscriber
         self.resends = 0
         self.late_ticks = 0
         self._stale_reported = 0
@@ -282,15 +294,46 @@ class SimBridgeNode(Node):
 
     def _after_step(self) -> None:
         steps = self.bridge.steps
-        if steps % self._monitor_every == 0:
+        monitor = steps % self._monitor_every == 0
+        clock = self._clock_pub is not None and steps % self._clock_every == 0
+        task = self._status_every and steps % self._status_every == 0
+        if not (monitor or clock or task):
+            return
+        state_on, cmd_on, clock_on, task_on = self._listeners() if self.driver is not None else _ALL_LISTENED
+        skipped = 0
+        if monitor:
             if self.driver is not None:
-                self._publish_applied_command()
-            self._publish_state()
-        if self._clock_pub is not None and steps % self._clock_every == 0:
-            self._clock_raw.set_stamp(self.bridge.stamp_ns)
-            self._clock_pub.publish(self._clock_raw.payload())
-        if self._status_every and steps % self._status_every == 0:
-            self._publish_task_status()
+                if cmd_on:
+                    self._publish_applied_command()
+                else:
+                    skipped += 1
+            if state_on:
+                self._publish_state()
+            else:
+                skipped += 1
+        if clock:
+            if clock_on:
+                self._clock_raw.set_stamp(self.bridge.stamp_ns)
+                self._clock_pub.publish(self._clock_raw.payload())
+            else:
+                skipped += 1
+        if task:
+            if task_on:
+                self._publish_task_status()
+            else:
+                skipped += 1
+        self.monitor_skipped += skipped
+
+    def _listeners(self) -> tuple[bool, bool, bool, bool]:
+        """Composed: whether joint_states, the applied commands, clock and task_status have
+        subscribers, looked up at most every LISTENERS_PERIOD s (driver thread)."""
+        now = time.monotonic()
+        if now >= self._listeners_due:
+            self._listeners_due = now + LISTENERS_PERIOD
+            self._listening = tuple(pub is not None and pub.get_subscription_count() > 0 for pub in
+                                    (self._state_pub, self._cmd_pub, self._clock_pub, self._task_pub))
+        return self._listening
+
 
     def _on_resend_check(self) -> None:
         if time.monotonic() - self._last_publish >= self.params["lockstep_resend"]:
@@ -357,6 +400,7 @@ class SimBridgeNode(Node):
             values.update(self.timing.counters())
         if self.driver is not None:
             values["loop_scheduling"] = self.loop_scheduling
+            values["monitor_skipped"] = self.monitor_skipped
         timing = self.driver.timing if self.driver is not None else None
         if timing is not None:
             lat = latencies_us(timing.take_window())
