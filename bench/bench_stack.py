@@ -14,7 +14,7 @@ round also runs the iteration's episodes through the composed driver loop with n
 (``loop_alone_iteration``, its ceiling), which splits the ratio (``rollout_split``): the driver path
 (host, bridge, thread) over the in-process rollout, and ROS over the driver path.
 The settings are ``make run``'s (``config/gear_learn.yaml``) unless ``--config`` says otherwise.
-Usage: python bench/bench_stack.py [--quick] [--config config/gear.yaml]
+Usage: python bench/bench_stack.py [--quick] [--config config/gear.yaml] [--monitoring-ab]
 """
 
 from __future__ import annotations
@@ -38,14 +38,17 @@ TARGET_ROS_OVER_IN_PROCESS = 1.3
 
 
 def ros_iteration(rollouts: int, seconds: float, domain: int, workdir: Path, composed: bool,
-                  config: Path = CONFIG, monitor_period: float | None = None) -> dict:
+                  config: Path = CONFIG, monitor_period: float | None = None, monitor_always: bool = False) -> dict:
     """One PPO iteration over ROS; returns the learner's metrics row. ``monitor_period`` overrides
-    the composed sim's (s between its joint_states and applied-command messages; 0: every step)."""
+    the composed sim's (s between its joint_states and applied-command messages; 0: every step);
+    ``monitor_always``: the composed sim publishes its monitoring topics with no subscriber too."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     params = ["--ros-args", "--params-file", str(config)]
     lockstep = ["-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0"]
     if monitor_period is not None:
         lockstep += ["-p", f"sim_bridge:monitor_period:={monitor_period}"]
+    if monitor_always:
+        lockstep += ["-p", "sim_bridge:monitor_always:=true"]
     arm = [("nf_bringup.sim_stack", lockstep)] if composed else \
         [("sim_bridge_node.node", []), ("nf_controller_node.node", lockstep)]
     procs = [subprocess.Popen([sys.executable, "-m", mod, *params, *extra], env=env, stdout=subprocess.DEVNULL,
@@ -189,6 +192,9 @@ def main() -> int:
     parser.add_argument("--monitor-period", type=float, default=None,
                         help="composed sim's monitor_period (s; 0: joint_states and commands every step; "
                              "default: the config's)")
+    parser.add_argument("--monitoring-ab", action="store_true",
+                        help="each round also runs the composed iteration with the monitoring topics published "
+                             "although nobody subscribes (sim_bridge:monitor_always), order alternated")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "stack.json")
     args = parser.parse_args()
     rollouts, seconds, repeats = (3, 1.0, 2) if args.quick else (15, 5.0, args.repeats)
@@ -196,10 +202,21 @@ def main() -> int:
     rows: dict[str, list[dict]] = {"composed": [], "separate": []}
     local = []  # the in-process iteration, interleaved with the ROS ones: this machine's speed drifts
     alone: list[dict] = []  # the same episodes through the composed driver loop without ROS
+    always: list[dict] = []  # --monitoring-ab: the composed iteration with sim_bridge:monitor_always
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(repeats):
             # the composed iteration and its in-process and loop-without-ROS counterparts back to back
             # (the pairwise ratios compare runs seconds apart); the slow two-process run last
+            def monitored(k: int = k) -> dict:
+                """The composed iteration with the monitoring published to nobody (sim_bridge:monitor_always)."""
+                row = ros_iteration(rollouts, seconds, 150 + (os.getpid() + 2 * k + 7) % 50, Path(tmp), composed=True,
+                                    config=args.config, monitor_period=args.monitor_period, monitor_always=True)
+                print(f"over ROS, composed, monitoring always published {k + 1}/{repeats}: rollouts "
+                      f"{row['rollout_seconds']:.2f} s ({steps / row['rollout_seconds']:.0f} steps/s)", flush=True)
+                return row
+
+            if args.monitoring_ab and k % 2 == 1:  # before the default composed iteration, or after: alternately
+                always.append(monitored())
             for j, how in enumerate(rows):
                 row = ros_iteration(rollouts, seconds, 150 + (os.getpid() + 2 * k + j) % 50, Path(tmp),
                                     composed=how == "composed", config=args.config,
@@ -210,6 +227,8 @@ def main() -> int:
                       flush=True)
                 if how != "composed":
                     continue
+                if args.monitoring_ab and k % 2 == 0:
+                    always.append(monitored())
                 local.append(in_process_iteration(rollouts, seconds, args.config))
                 print(f"in process {k + 1}/{repeats}: rollouts {local[-1]['rollout_seconds']:.2f} s "
                       f"({steps / local[-1]['rollout_seconds']:.0f} steps/s), wall {local[-1]['wall_seconds']:.2f} s",
@@ -269,10 +288,19 @@ def main() -> int:
                              "separate_all": [r["wall_seconds"] for r in rows["separate"]],
                              "in_process_all": [r["wall_seconds"] for r in local]},
     }
+    if always:
+        always_ratios = [a["wall_seconds"] / c["wall_seconds"] for a, c in zip(always, rows["composed"], strict=True)]
+        result["monitoring_ab"] = {
+            "always_published_wall_s": [a["wall_seconds"] for a in always],
+            "always_over_default": always_ratios, "always_over_default_median": statistics.median(always_ratios),
+            "always_over_in_process": [a["wall_seconds"] / i["wall_seconds"]
+                                       for a, i in zip(always, local, strict=True)],
+            "what": "the composed iteration with joint_states, commands, clock and task_status published to nobody "
+                    "(sim_bridge:monitor_always) over the default (published only while subscribed), same round"}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1))
     print(json.dumps(result["lockstep_steps_per_s"]), json.dumps(result["iteration_wall_s"]),
-          json.dumps(result["rollout_split"]))
+          json.dumps(result["rollout_split"]), json.dumps(result.get("monitoring_ab", {})))
     return 0
 
 

@@ -294,6 +294,19 @@ def test_composed_stack_publishes_monitoring_only_while_subscribed(probe_and_dom
           f"{1e3 * first:.0f} ms after subscribing")
 
 
+def test_composed_stack_monitor_always_publishes_to_nobody(probe_and_domain, tmp_path: Path):
+    """``monitor_always``: the monitoring topics go out without a subscriber too (nothing skipped)."""
+    probe, domain = probe_and_domain
+    diags = probe.collect(DiagnosticArray, "/diagnostics", RELIABLE, lambda m: diag_values(m, "sim_bridge"))
+    args = ["-m", "nf_bringup.sim_stack", "--ros-args", "-p", "sim_bridge:task:=free",
+            "-p", "sim_bridge:monitor_always:=true", "-p", "nf_controller:idle_mode:=hold",
+            "-p", "sim_bridge:diagnostics_period:=0.2"]
+    with RosProcess(args, domain, tmp_path / "stack.log") as stack:
+        assert probe.spin_until(lambda: any(v and int(v["steps"]) > 1000 for _, v in diags), 60.0), stack.log()
+        assert stack.stop() == 0, stack.log()
+    assert all(v["monitor_skipped"] == "0" for _, v in diags if v), diags[-1]
+
+
 @pytest.mark.parametrize(("args", "reason"), [
     ([*SIM, "-p", "mode:=fast"], "mode must be one of"),
     ([*SIM, "-p", "mode:=realtime", "-p", "response_log:=/proc/no/such/latency.npy"], "response_log: cannot create"),

@@ -81,6 +81,8 @@ PARAMETERS = {
     "monitor_period": (0.0, "composed only: s of simulated time between joint_states and applied-command messages "
                             "(0: every step; they are for monitoring and bags, the controller is called directly; "
                             "published only while subscribed)"),
+    "monitor_always": (False, "composed only: publish joint_states, applied commands, clock and task_status even "
+                              "without a subscriber (default: only while subscribed)"),
     "realtime_spin": (0.0003, "composed realtime: the last s of each 1 ms period waited awake without the GIL "
                               "instead of asleep (0: sleep only; costs up to that much CPU per period)"),
     "realtime_warm": (True, "composed realtime: before the spin, run the controller's compiled step on the last "
@@ -198,7 +200,7 @@ class SimBridgeNode(Node):
         # out only while a topic has a subscriber; a headless learning run does not pay for them
         # (bench/bench_stack.py), a recorder or plot that subscribes gets them within LISTENERS_PERIOD
         self._listening = _ALL_LISTENED
-        self._listeners_due = 0.0
+        self._listeners_due = math.inf if p["monitor_always"] else 0.0
         self.monitor_skipped = 0  # monitoring messages not published for want of a subscriber
         self.resends = 0
         self.late_ticks = 0
