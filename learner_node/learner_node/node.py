@@ -184,7 +184,7 @@ class LearnerNode(Node):
             self.chunks.pop(result.episode_id)
             raise EpisodeFailedError(f"controller: {result.message}")
         # the chunks travel on their own topic: give the last ones a moment
-        _wait_until(lambda: self.chunks.count(result.episode_id) >= result.n_chunks, time.monotonic() + 5.0)
+        self.chunks.wait_for(result.episode_id, result.n_chunks, 5.0)
         try:
             return episode_from_chunks(
                 self.chunks.pop(result.episode_id), success_depth=self.success_depth,
@@ -206,15 +206,13 @@ def policy_version(trainer: Trainer, rollout: int | None = None) -> int:
 
 
 def _wait(future: Any, deadline: float) -> bool:
-    return _wait_until(future.done, deadline)
-
-
-def _wait_until(predicate: Any, deadline: float) -> bool:
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.002)
-    return True
+    """Block until the rclpy ``future`` is done (True) or ``deadline`` (monotonic s) passes: woken by
+    the future's done callback on the executor thread, not by polling."""
+    if future.done():
+        return True
+    done = threading.Event()
+    future.add_done_callback(lambda _: done.set())
+    return done.wait(max(0.0, deadline - time.monotonic())) or future.done()
 
 
 class RosTraining:

@@ -87,6 +87,7 @@ class ChunkCollector:
     def __init__(self, max_episodes: int = 256) -> None:
         self._by_episode: dict[int, list[Any]] = defaultdict(list)
         self._lock = threading.Lock()
+        self._arrived = threading.Condition(self._lock)  # notified by every ``add``
         self.max_episodes = max_episodes
         self.received = 0
 
@@ -97,11 +98,18 @@ class ChunkCollector:
             self._by_episode[int(chunk.episode_id)].append(chunk)
             while len(self._by_episode) > self.max_episodes:
                 del self._by_episode[next(iter(self._by_episode))]
+            self._arrived.notify_all()
 
     def count(self, episode_id: int) -> int:
         """Chunks held for ``episode_id``."""
         with self._lock:
             return len(self._by_episode.get(int(episode_id), ()))
+
+    def wait_for(self, episode_id: int, count: int, timeout: float) -> bool:
+        """Block until ``count`` chunks of ``episode_id`` are held (True) or ``timeout`` s pass (False)."""
+        key = int(episode_id)
+        with self._arrived:
+            return self._arrived.wait_for(lambda: len(self._by_episode.get(key, ())) >= count, timeout)
 
     def pop(self, episode_id: int) -> list[Any]:
         """All chunks of ``episode_id`` (removed)."""
