@@ -12,6 +12,7 @@ import time
 import pytest
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 
 from nf_controller_node import ros_runtime
@@ -79,43 +80,37 @@ def test_spin_pause_bounds_how_often_a_waiting_coroutine_is_resumed(domain):
     assert busy > 5 * polite, f"without a pause only {busy} resumes (with: {polite})"
 
 
-def test_a_spin_lock_caller_gets_in_without_waiting_out_the_slice(domain):
-    """The executor thread holds the lock through each spin_once (here 1 s slices of an idle node,
-    so a plain lock would keep a caller waiting up to a second, or longer: the loop takes it straight
-    back); the caller wakes the executor and is let in before the next slice."""
-    rclpy.init()
-    executor = SingleThreadedExecutor()
-    node = Node("spin_lock_test")
-    executor.add_node(node)
-    lock = SpinLock()
-    lock.wake = executor.wake
-    stop = threading.Event()
-    slices = []
+class _Locked(Node):
+    """An idle node (no work ends a slice early) with a spin lock."""
 
-    def spin() -> None:
-        while not stop.is_set():
-            with lock.spin_slice():
-                executor.spin_once(timeout_sec=1.0)
-            slices.append(time.monotonic())
+    def __init__(self) -> None:
+        super().__init__("spin_lock_test")
+        self.spin_lock = SpinLock()
 
-    spinner = threading.Thread(target=spin, daemon=True)
-    spinner.start()
-    try:
-        time.sleep(0.2)  # the spinner is inside a slice
-        t0 = time.monotonic()
-        for _ in range(20):
-            with lock:
-                pass
-        waited = time.monotonic() - t0
-    finally:
-        stop.set()
-        executor.wake()
-        spinner.join(5.0)
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    assert waited < 1.0, f"20 turns took {waited:.2f} s with 1 s spin slices"
-    assert slices, "the executor thread never finished a slice"
+
+@pytest.mark.parametrize("executor_kind", [SingleThreadedExecutor, EventsExecutor])
+def test_a_spin_lock_caller_gets_in_without_waiting_out_the_slice(domain, monkeypatch, executor_kind):
+    """``run_node`` with a main-thread ``work`` spins in slices that hold the node's ``SpinLock``;
+    here the slices are 0.5 s long, so a caller that cannot end the executor's wait waits out the
+    rest of one. Each turn comes 20 ms after the last, inside a fresh slice, and is timed on its own:
+    with ``executor.wake()`` as the wake-up a turn took the rest of its slice (rclpy's executors went
+    back to waiting: 98 ms median with 0.1 s slices); the slice's turn future ends the wait at once."""
+    monkeypatch.setattr(ros_runtime, "WORK_SPIN_SLICE", 0.5)
+    waits: list[float] = []
+
+    def work(node: _Locked, stop: threading.Event) -> int:
+        time.sleep(0.1)
+        for _ in range(10):
+            time.sleep(0.02)
+            t0 = time.monotonic()
+            with node.spin_lock:
+                waits.append(time.monotonic() - t0)
+        return 0
+
+    assert run_node(_Locked, "locked", "test", ["locked"], work=work, make_executor=executor_kind) == 0
+    waits.sort()
+    assert waits[len(waits) // 2] < 0.05, f"median wait {waits[len(waits) // 2] * 1e3:.1f} ms with 0.5 s slices"
+    assert waits[-1] < 0.3, f"a turn waited {waits[-1] * 1e3:.1f} ms with 0.5 s slices"
 
 
 def test_command_line_parameters_that_reach_a_node():

@@ -27,6 +27,7 @@ from rclpy.experimental import EventsExecutor
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 
 SPIN_SLICE = 0.1  # s, longest wait before the stop flag is looked at
@@ -133,22 +134,26 @@ def freeze_heap() -> int:
 
 class SpinLock:
     """What a node's main thread holds (``with node.spin_lock:``) for calls that must not interleave
-    with the executor thread, which holds it for each spin slice. A waiting caller wakes the
-    executor and the spin loop lets it in before its next slice: with a plain ``Lock`` the loop
-    took it straight back, and the learner waited 10-36 ms for each goal it sent."""
+    with the executor thread, which holds it for each spin slice. A waiting caller ends the
+    executor's current wait and the spin loop lets it in before its next slice: with a plain
+    ``Lock`` the loop took it straight back, and the learner waited 10-36 ms for each goal it sent.
+
+    The wait ends through the slice's ``turn`` (spin with
+    ``executor.spin_once_until_future_complete(turn, timeout)``): ``executor.wake()`` is not enough,
+    rclpy 7.1's executors take their own wake-up as no work and wait again until the slice's timeout
+    (a caller waited out the rest of each 5 ms slice, 2.4 ms in the median), and a guard condition of
+    the node stops the EventsExecutor ("Guard conditions not supported")."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._callers = 0  # threads in or waiting for ``with``
-        self._count = threading.Lock()
-        self.wake: Callable[[], None] | None = None  # the executor's wake, set by run_node
+        self._count = threading.Lock()  # guards _callers and _turn
+        self._turn: Future | None = None  # of the slice being spun, done once a caller waits
 
     def __enter__(self) -> SpinLock:
         with self._count:
             self._callers += 1
-        wake = self.wake
-        if wake is not None:
-            wake()  # end the executor's current wait now rather than at its timeout
+            self._end_turn()
         self._lock.acquire()
         return self
 
@@ -157,13 +162,27 @@ class SpinLock:
         with self._count:
             self._callers -= 1
 
+    def _end_turn(self) -> None:
+        turn = self._turn
+        if turn is not None and not turn.done():
+            turn.set_result(True)  # its done callback wakes the executor, which then returns
+
     @contextlib.contextmanager
-    def spin_slice(self) -> Iterator[None]:
-        """The executor thread's hold for one slice, after any waiting caller had its turn."""
+    def spin_slice(self) -> Iterator[Future]:
+        """The executor thread's hold for one slice, after any waiting caller had its turn; yields
+        the slice's turn (a future done as soon as a caller waits)."""
         while self._callers:
             time.sleep(CALLER_TURN)
         with self._lock:
-            yield
+            with self._count:
+                self._turn = turn = Future()
+                if self._callers:  # came in between: no wait at all
+                    self._end_turn()
+            try:
+                yield turn
+            finally:
+                with self._count:
+                    self._turn = None
 
 
 def run_node(make_node: Callable[[], Node | Sequence[Node]], prog: str, description: str,
@@ -214,15 +233,17 @@ def run_node(make_node: Callable[[], Node | Sequence[Node]], prog: str, descript
             started(nodes)
 
         lock = getattr(node, "spin_lock", None) or contextlib.nullcontext()
-        if isinstance(lock, SpinLock):
-            lock.wake = executor.wake
         slice_s = SPIN_SLICE if work is None else WORK_SPIN_SLICE
         pauses = [n.spin_pause for n in nodes if callable(getattr(n, "spin_pause", None))]
 
         def spin() -> None:
             while not stop.is_set() and rclpy.ok():
-                with lock.spin_slice() if isinstance(lock, SpinLock) else lock:
-                    executor.spin_once(timeout_sec=slice_s)
+                if isinstance(lock, SpinLock):
+                    with lock.spin_slice() as turn:
+                        executor.spin_once_until_future_complete(turn, timeout_sec=slice_s)
+                else:
+                    with lock:
+                        executor.spin_once(timeout_sec=slice_s)
                 for pause in pauses:
                     seconds = pause()
                     if seconds > 0.0:
