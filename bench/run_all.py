@@ -90,8 +90,18 @@ def _franka_line(franka: dict) -> str:
             f"(< {t['late_run_below']}); libfranka exceptions {franka['exceptions']}")
 
 
+def _handover_line(handover: dict) -> str:
+    m = handover["median_ms"]
+    return (f"   between two episodes over ROS (composed, {handover['handovers']} hand-overs): median "
+            f"{m['handover']:.1f} ms ({100 * handover['share_of_rollouts']:.1f} % of the rollout time): result to "
+            f"the learner {m['end_to_result']:.1f}, learner {m['learner_turnaround']:.1f} (spin lock "
+            f"{m['spin_lock_wait']:.2f}), goal {m['goal_to_controller']:.1f}, set-up and reset "
+            f"{m['setup_and_reset']:.1f}")
+
+
 # (name, script, one-line summary of its JSON): run in this order after the ROS-free benchmarks
 _ROS_BENCHMARKS = (("bags", "bench_bags.py", _bags_line), ("stack", "bench_stack.py", _stack_line),
+                   ("handover", "trace_handover.py", _handover_line),
                    ("realtime", "bench_realtime.py", _realtime_line), ("franka", "bench_franka.py", _franka_line))
 
 
