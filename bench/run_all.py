@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import subprocess
 import sys
 import time
@@ -90,18 +91,21 @@ def _franka_line(franka: dict) -> str:
             f"(< {t['late_run_below']}); libfranka exceptions {franka['exceptions']}")
 
 
-def _handover_line(handover: dict) -> str:
-    m = handover["median_ms"]
-    return (f"   between two episodes over ROS (composed, {handover['handovers']} hand-overs): median "
-            f"{m['handover']:.1f} ms ({100 * handover['share_of_rollouts']:.1f} % of the rollout time): result to "
-            f"the learner {m['end_to_result']:.1f}, learner {m['learner_turnaround']:.1f} (spin lock "
-            f"{m['spin_lock_wait']:.2f}), goal {m['goal_to_controller']:.1f}, set-up and reset "
-            f"{m['setup_and_reset']:.1f}")
+def _trace_line(trace: dict) -> str:
+    h, m = trace["handover"], trace["handover"]["median_ms"]
+    ros, alone = trace["in_episode"]["over_ros"], trace["in_episode"]["without_ros"]
+    top = ", ".join(f"{name.split('.')[-1]} {ms:.0f}" for name, ms in
+                    list(trace["in_episode"]["stall_excess_ms_by_overlap_median"].items())[:3])
+    return (f"   between two episodes over ROS: median {m['handover']:.1f} ms ({100 * h['share_of_rollouts']:.1f} % of "
+            f"the rollout time; spin lock {m['spin_lock_wait']:.2f} ms); inside episodes, steps stalled beyond the "
+            f"median: {statistics.median(r['stall_excess_ms'] for r in ros):.0f} ms over ROS vs "
+            f"{statistics.median(r['stall_excess_ms'] for r in alone):.0f} ms without ROS per iteration "
+            f"(overlapping: {top} ms)")
 
 
 # (name, script, one-line summary of its JSON): run in this order after the ROS-free benchmarks
 _ROS_BENCHMARKS = (("bags", "bench_bags.py", _bags_line), ("stack", "bench_stack.py", _stack_line),
-                   ("handover", "trace_handover.py", _handover_line),
+                   ("ros_iteration_trace", "trace_ros_iteration.py", _trace_line),
                    ("realtime", "bench_realtime.py", _realtime_line), ("franka", "bench_franka.py", _franka_line))
 
 
