@@ -43,8 +43,8 @@ def main() -> int:
     parser.add_argument("--calls", type=int, default=200, help="calls per operation and gap")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "cold_after_sleep.json")
     args = parser.parse_args()
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    os.environ.setdefault("ROS_DOMAIN_ID", str(200 + os.getpid() % 30))
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # loopback only, its own domain
+    os.environ["ROS_DOMAIN_ID"] = str(200 + os.getpid() % 30)
     import rclpy
     from nf_msgs.msg import ControllerStatus
 
