@@ -48,8 +48,7 @@ class DriverRig:
         self.tcp_arm = spec.arm_model(panda_spec.GEAR_PART)
         self.x0 = self.tcp_arm.tcp_position(np.asarray(state.q))
         self.q = np.asarray(state.q, dtype=float).copy()  # joint positions of the last state
-        self.taus: list[np.ndarray] = []
-        self.limits: list[np.ndarray] = []
+        self._ticks: list[tuple[np.ndarray, np.ndarray]] = []  # (torque, torque limits), one append per tick
         errors = (franka.FrankaException, franka.ControlException, franka.CommandException,
                   franka.NetworkException, franka.RealtimeException, franka.InvalidOperationException)
         self.driver = FrankaDriverLoop(robot, self.host, self.tcp_arm.tcp_position, config or DriverConfig(),
@@ -61,8 +60,13 @@ class DriverRig:
 
     def _record(self, q: np.ndarray, dq: np.ndarray, tau: np.ndarray, stamp_ns: int) -> None:
         self.q = q
-        self.taus.append(tau.copy())
-        self.limits.append(self.loop.controller.law.torque_limits.copy())
+        self._ticks.append((tau.copy(), self.loop.controller.law.torque_limits.copy()))
+
+    def torques_and_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every tick's torque and the limits in force, as (ticks, 7) arrays of one length: read while
+        the loop thread may still append (two separate lists could differ by the tick in between)."""
+        ticks = list(self._ticks)
+        return np.array([t for t, _ in ticks]), np.array([lim for _, lim in ticks])
 
     def start(self) -> None:
         """The loop on its own thread, scheduled as the driver node's with ``realtime: ignore``."""

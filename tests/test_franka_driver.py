@@ -40,7 +40,7 @@ def test_identifies_the_fr3_and_refuses_the_panda_description(sim):
 
 def _check_limits(rig: DriverRig) -> None:
     """Every command within the limit left by the robot's gravity, and within 1 Nm of the one before."""
-    taus, limits = np.array(rig.taus), np.array(rig.limits)
+    taus, limits = rig.torques_and_limits()
     assert np.all(np.isfinite(taus))
     assert np.all(np.abs(taus[1:]) <= limits[:-1] + 1e-9)
     assert np.all(np.abs(np.diff(taus, axis=0)) <= 1.0 + 1e-9)  # 1000 Nm/s at 1 kHz

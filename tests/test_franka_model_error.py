@@ -80,7 +80,7 @@ def _step(rig: DriverRig, goal: np.ndarray, stages: list[tuple[float, float, flo
         errors.append(float(np.linalg.norm(truth.tcp_position(rig.q) - goal)))
     assert rig.driver.exceptions == 0, rig.driver.last_error
     assert not rig.loop.fault
-    taus, limits = np.array(rig.taus), np.array(rig.limits)
+    taus, limits = rig.torques_and_limits()
     assert np.all(np.abs(taus[1:]) <= limits[:-1] + 1e-9)
     assert np.all(np.abs(np.diff(taus, axis=0)) <= 1.0 + 1e-9)  # 1000 Nm/s at 1 kHz
     return errors
