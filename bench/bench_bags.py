@@ -20,7 +20,8 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
-sys.path[:0] = [str(REPO / p) for p in ("tests", "bags", "nf_controller_node", "sim_bridge_node", "learner_node")]
+sys.path[:0] = [str(REPO / p) for p in
+               ("tests", "bags", "nf_core", "nf_controller_node", "sim_bridge_node", "learner_node")]
 
 from nf_bags import bagfile, reader  # noqa: E402
 from nf_msgs.msg import PolicyParameters as PolicyParametersMsg  # noqa: E402

@@ -32,25 +32,25 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE.parent / p) for p in ("nf_controller_node", "franka_driver")]
+sys.path[:0] = [str(HERE.parent / p) for p in ("nf_core", "nf_controller_node", "franka_driver")]
 
 from franka_driver.loop import DriverConfig, FrankaDriverLoop, summary_us  # noqa: E402
 from franka_driver.robot_model import identify  # noqa: E402
 from franka_driver.simulator import HOST, FrankySim  # noqa: E402
-from franka_driver.thread_priority import open_robot  # noqa: E402
-from nf_controller_node import panda_spec  # noqa: E402
 from nf_controller_node.control_loop import ControlLoop, LoopConfig  # noqa: E402
-from nf_controller_node.flow_spec import FlowArchitecture  # noqa: E402
 from nf_controller_node.host import ControllerHost  # noqa: E402
-from nf_controller_node.policy_params import PolicyParameters  # noqa: E402
-from nf_controller_node.thread_priority import (  # noqa: E402
+from nf_controller_node.torque_law import TorqueLawConfig  # noqa: E402
+from nf_core import panda_spec  # noqa: E402
+from nf_core.flow_spec import FlowArchitecture  # noqa: E402
+from nf_core.policy_params import PolicyParameters  # noqa: E402
+from nf_core.thread_priority import (  # noqa: E402
     AUTO,
     apply,
     check_priority_allowed,
     current_thread_policy,
+    open_robot,
     resolve_priority,
 )
-from nf_controller_node.torque_law import TorqueLawConfig  # noqa: E402
 
 TARGETS = {"exceptions": 0, "p99_us_max": 150.0, "p999_us_max": 300.0, "late_run_below": 3}
 

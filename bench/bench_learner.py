@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-for pkg in ("nf_controller_node", "learner_node", "sim_bridge_node"):
+for pkg in ("nf_core", "nf_controller_node", "learner_node", "sim_bridge_node"):
     if str(ROOT / pkg) not in sys.path:
         sys.path.insert(0, str(ROOT / pkg))
 
@@ -49,7 +49,7 @@ from learner_node.config import TrainConfig  # noqa: E402
 from learner_node.mlp_policy import MLPPolicy  # noqa: E402
 from learner_node.policy import NFPolicy  # noqa: E402
 from learner_node.ppo import PPOBatch, PPOSettings, make_optimizer, ppo_update  # noqa: E402
-from nf_controller_node.flow_spec import FlowArchitecture  # noqa: E402
+from nf_core.flow_spec import FlowArchitecture  # noqa: E402
 
 DIM = 3
 N_FLOW, N_HIDDEN = 2, 16

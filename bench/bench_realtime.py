@@ -81,7 +81,7 @@ def _policy_publisher(domain: int):
 
     from learner_node.config import TrainConfig
     from learner_node.trainer import Trainer
-    from nf_controller_node import topics
+    from nf_core import topics
 
     params = Trainer(TrainConfig.from_sources(CONFIG, {"rollouts_per_iter": 1})).policy.to_params(version=1)
     context = rclpy.Context()

@@ -22,7 +22,7 @@ import mujoco
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-for pkg in ("nf_controller_node", "sim_bridge_node"):
+for pkg in ("nf_core", "nf_controller_node", "sim_bridge_node"):
     if str(ROOT / pkg) not in sys.path:
         sys.path.insert(0, str(ROOT / pkg))
 

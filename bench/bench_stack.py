@@ -109,8 +109,8 @@ def loop_alone(rollouts: int, seconds: float, config: Path = CONFIG) -> list[flo
     composed stack, what ROS's slow side and publishing take from it."""
     import threading
 
-    from nf_controller_node.episode import EpisodeRun, EpisodeSpec
     from nf_controller_node.host import EPISODE_END
+    from nf_core.episode import EpisodeRun, EpisodeSpec
     from sim_bridge_node.bridge import SimBridge
     from sim_bridge_node.composed import SimDriverLoop
 
@@ -146,8 +146,8 @@ def loop_alone_iteration(rollouts: int, seconds: float, config: Path = CONFIG) -
     import threading
 
     from learner_node.trainer import Trainer, policy_sigma
-    from nf_controller_node.episode import EpisodeRun, EpisodeSpec
     from nf_controller_node.host import EPISODE_END
+    from nf_core.episode import EpisodeRun, EpisodeSpec
     from sim_bridge_node.bridge import SimBridge
     from sim_bridge_node.composed import SimDriverLoop
 

@@ -42,8 +42,8 @@ def main() -> int:
         args.pairs, args.seconds = 4, 1.0
 
     from learner_node.rollout import RolloutRunner
-    from nf_controller_node.episode import EpisodeRun, EpisodeSpec
     from nf_controller_node.flow_eval import FlowEvaluator
+    from nf_core.episode import EpisodeRun, EpisodeSpec
     from sim_bridge_node.bridge import SimBridge
     from sim_bridge_node.composed import SimDriverLoop
 

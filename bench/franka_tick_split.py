@@ -36,18 +36,23 @@ from tempfile import TemporaryDirectory
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE.parent / p) for p in ("nf_controller_node", "franka_driver")]
+sys.path[:0] = [str(HERE.parent / p) for p in ("nf_core", "nf_controller_node", "franka_driver")]
 
 from franka_driver.robot_model import identify  # noqa: E402
 from franka_driver.simulator import HOST, FrankySim  # noqa: E402
-from franka_driver.thread_priority import open_robot  # noqa: E402
-from nf_controller_node import panda_spec  # noqa: E402
 from nf_controller_node.control_loop import ControlLoop, LoopConfig  # noqa: E402
-from nf_controller_node.flow_spec import FlowArchitecture  # noqa: E402
 from nf_controller_node.host import ControllerHost  # noqa: E402
-from nf_controller_node.policy_params import PolicyParameters  # noqa: E402
-from nf_controller_node.thread_priority import AUTO, apply, current_thread_policy, resolve_priority  # noqa: E402
 from nf_controller_node.torque_law import TorqueLawConfig  # noqa: E402
+from nf_core import panda_spec  # noqa: E402
+from nf_core.flow_spec import FlowArchitecture  # noqa: E402
+from nf_core.policy_params import PolicyParameters  # noqa: E402
+from nf_core.thread_priority import (  # noqa: E402
+    AUTO,
+    apply,
+    current_thread_policy,
+    open_robot,
+    resolve_priority,
+)
 
 
 def _pcts(values: np.ndarray) -> str:

@@ -11,14 +11,11 @@ import array
 import time
 
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
-from nf_controller_node import topics
-from nf_controller_node.ros_runtime import run_node
-
-STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)  # as nf_controller and sim_bridge
+from nf_core import qos, topics
+from nf_core.ros_runtime import run_node
 
 
 class EchoNode(Node):
@@ -30,8 +27,8 @@ class EchoNode(Node):
         self._dim = MultiArrayDimension(size=7, stride=7)
         self._cmd.layout.dim = [self._dim]
         self._zero = array.array("d", bytes(8 * 7))
-        self._pub = self.create_publisher(Float64MultiArray, topics.COMMANDS, STATE_QOS)
-        self.create_subscription(JointState, topics.JOINT_STATES, self._on_state, STATE_QOS)
+        self._pub = self.create_publisher(Float64MultiArray, topics.COMMANDS, qos.STATE)
+        self.create_subscription(JointState, topics.JOINT_STATES, self._on_state, qos.STATE)
         self.latest = 0.0
 
     def _on_state(self, msg: JointState) -> None:

@@ -52,7 +52,7 @@ EXECUTOR_CALLBACKS = [(_NODE, "NFControllerNode", m) for m in (
 STACK = [("nf_controller_node.host", "ControllerHost", "start_episode"),
          ("nf_controller_node.host", "ControllerHost", "end_episode"), *EXECUTOR_CALLBACKS]
 LEARNER = [("learner_node.node", "LearnerNode", "run_episode"),
-           ("nf_controller_node.ros_runtime", "SpinLock", "__enter__"),
+           ("nf_core.ros_runtime", "SpinLock", "__enter__"),
            ("rclpy.action.client", "ActionClient", "send_goal_async")]
 
 # argv after -c: trace log, step log ("-": none), traced methods, module whose main() to run, its args

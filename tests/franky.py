@@ -12,12 +12,11 @@ import numpy as np
 from franka_driver.loop import DriverConfig, FrankaDriverLoop
 from franka_driver.robot_model import ArmSpec, identify
 from franka_driver.simulator import HOST, FrankySim  # noqa: F401  (re-exported for the tests)
-from franka_driver.thread_priority import open_robot
-from nf_controller_node import panda_spec
 from nf_controller_node.control_loop import ControlLoop, LoopConfig
 from nf_controller_node.host import ControllerHost
-from nf_controller_node.thread_priority import AUTO, apply, resolve_priority
 from nf_controller_node.torque_law import TorqueLawConfig
+from nf_core import panda_spec
+from nf_core.thread_priority import AUTO, apply, open_robot, resolve_priority
 
 
 class DriverRig:

@@ -13,7 +13,7 @@ from nf_msgs.action import RunEpisode
 from nf_msgs.msg import ControllerStatus, PolicyParameters, RolloutChunk, TaskStatus
 from nf_msgs.srv import ResetSim
 
-from nf_controller_node.flow_spec import FlowArchitecture
+from nf_core.flow_spec import FlowArchitecture
 
 
 def _series(n: int, seed: int) -> list[float]:

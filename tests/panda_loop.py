@@ -12,7 +12,7 @@ from learner_node.flow import init_flow_weights
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
 from nf_controller_node.flow_eval import FlowEvaluator
-from nf_controller_node.flow_spec import FlowArchitecture
+from nf_core.flow_spec import FlowArchitecture
 from sim_bridge_node.env import InsertionEnv
 
 ARCH = FlowArchitecture(dim=3, n_flow=2, n_hidden=16, activation="gelu")

@@ -35,7 +35,8 @@ def ros_env(domain_id: int, **extra: str) -> dict[str, str]:
     env.pop("ROS_STATIC_PEERS", None)
     env["FASTDDS_BUILTIN_TRANSPORTS"] = TEST_TRANSPORTS
     env["PYTHONUNBUFFERED"] = "1"
-    packages = ("nf_controller_node", "learner_node", "sim_bridge_node", "nf_bringup", "franka_driver", "bags", "tests")
+    packages = ("nf_core", "nf_controller_node", "learner_node", "sim_bridge_node", "nf_bringup", "franka_driver",
+                "bags", "tests")
     paths = [str(REPO / p) for p in packages]
     env["PYTHONPATH"] = os.pathsep.join([*paths, env.get("PYTHONPATH", "")])
     env.update(extra)

@@ -6,8 +6,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
+from nf_core import panda_spec
 
 
 @pytest.fixture(scope="module")

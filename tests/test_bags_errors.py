@@ -28,7 +28,7 @@ def run_tool(*args: str) -> subprocess.CompletedProcess:
     """``python -m <args>`` with nf_bags importable; a ROS domain of this test range, loopback only."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO / "bags"), *[str(REPO / p) for p in
-                                         ("nf_controller_node", "learner_node", "sim_bridge_node")],
+                                         ("nf_core", "nf_controller_node", "learner_node", "sim_bridge_node")],
                                          env.get("PYTHONPATH", "")])
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env.setdefault("ROS_DOMAIN_ID", "66")

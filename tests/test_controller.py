@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from learner_node.flow import init_flow_weights
-from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
 from nf_controller_node.flow_eval import FlowEvaluator
-from nf_controller_node.flow_spec import FlowArchitecture
 from nf_controller_node.lyapunov import LyapunovMonitor
-from nf_controller_node.policy_params import PolicyParameterError, PolicyParameters
 from nf_controller_node.torque_law import TorqueLawConfig, orientation_error
+from nf_core import panda_spec
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.policy_params import PolicyParameterError, PolicyParameters
 
 ARCH = FlowArchitecture(dim=3, n_flow=2, n_hidden=16)
 Q0 = np.array([0.0, -0.12, 0.0, -2.26, 0.0, 2.14, 0.785])

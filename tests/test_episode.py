@@ -8,11 +8,11 @@ import pytest
 
 from learner_node.config import TrainConfig
 from learner_node.trainer import Trainer, make_evaluator, policy_sigma
-from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.control_loop import ControlLoop
-from nf_controller_node.episode import EpisodeRun, EpisodeSpec
-from nf_controller_node.reward import RewardWeights
+from nf_core import panda_spec
+from nf_core.episode import EpisodeRun, EpisodeSpec
+from nf_core.reward import RewardWeights
 from sim_bridge_node.env import InsertionEnv
 
 NAMES = list(panda_spec.JOINT_NAMES)

@@ -19,8 +19,8 @@ from learner_node.policy import NFPolicy
 from learner_node.selfcheck import main as selfcheck_main
 from nf_controller_node import flow_eval
 from nf_controller_node.flow_eval import FlowEvaluator, pack
-from nf_controller_node.flow_spec import ACTIVATIONS, FlowArchitecture
-from nf_controller_node.policy_params import PolicyParameters
+from nf_core.flow_spec import ACTIVATIONS, FlowArchitecture
+from nf_core.policy_params import PolicyParameters
 
 CASES = [(dim, act) for dim in (2, 3) for act in ACTIVATIONS]
 

@@ -11,9 +11,9 @@ import pytest
 
 from franka_driver.loop import DriverConfig, reset_policy
 from franka_driver.robot_model import FR3, WrongRobotModelError, identify
-from franka_driver.thread_priority import open_robot
-from nf_controller_node.episode import EpisodeRun, EpisodeSpec
-from nf_controller_node.reward import RewardWeights
+from nf_core.episode import EpisodeRun, EpisodeSpec
+from nf_core.reward import RewardWeights
+from nf_core.thread_priority import open_robot
 
 from franky import DriverRig, FrankySim
 

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from franka_driver.loop import DriverConfig, reset_policy
-from nf_controller_node.episode import EpisodeRun, EpisodeSpec
 from nf_controller_node.host import EPISODE_END
-from nf_controller_node.reward import RewardWeights
+from nf_core.episode import EpisodeRun, EpisodeSpec
+from nf_core.reward import RewardWeights
 
 from franky import DriverRig, FrankySim
 

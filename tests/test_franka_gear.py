@@ -19,10 +19,10 @@ import pytest
 
 from franka_driver.franky_launch import GEAR_BODY, HAND_BODY
 from franka_driver.loop import DriverConfig, reset_policy
-from nf_controller_node import panda_spec
-from nf_controller_node.episode import EpisodeRun, EpisodeSpec
-from nf_controller_node.policy_params import PolicyParameters
-from nf_controller_node.reward import RewardWeights
+from nf_core import panda_spec
+from nf_core.episode import EpisodeRun, EpisodeSpec
+from nf_core.policy_params import PolicyParameters
+from nf_core.reward import RewardWeights
 from sim_bridge_node import scenes
 
 from franky import DriverRig, FrankySim

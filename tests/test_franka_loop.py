@@ -12,12 +12,12 @@ import pytest
 
 from franka_driver.loop import DriverConfig, FrankaDriverLoop, reset_policy
 from franka_driver.robot_model import FR3
-from nf_controller_node import panda_spec
 from nf_controller_node.control_loop import ControlLoop, LoopConfig
-from nf_controller_node.episode import EpisodeRun, EpisodeSpec
 from nf_controller_node.host import EPISODE_END, ControllerHost
-from nf_controller_node.reward import RewardWeights
 from nf_controller_node.torque_law import TorqueLawConfig
+from nf_core import panda_spec
+from nf_core.episode import EpisodeRun, EpisodeSpec
+from nf_core.reward import RewardWeights
 
 Q0 = np.array([0.0, 0.0, 0.0, -1.57, 0.0, 1.57, 0.785])
 

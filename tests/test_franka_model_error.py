@@ -19,7 +19,7 @@ import pytest
 from franka_driver import franky_launch
 from franka_driver.loop import reset_policy
 from franka_driver.robot_model import FR3, PANDA
-from nf_controller_node import panda_spec
+from nf_core import panda_spec
 
 from franky import DriverRig, FrankySim
 

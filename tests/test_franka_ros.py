@@ -19,7 +19,7 @@ from nf_msgs.msg import ControllerStatus
 from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
 from sensor_msgs.msg import JointState
 
-from nf_controller_node.thread_priority import check_priority_allowed
+from nf_core.thread_priority import check_priority_allowed
 
 from franky import FrankySim
 from ros_testing import REPO, RosProcess, allocate_domain_id, thread_policies

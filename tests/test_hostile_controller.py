@@ -10,14 +10,15 @@ import math
 import numpy as np
 import pytest
 
-from nf_controller_node import control_loop, episode, panda_spec
+from nf_controller_node import control_loop
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.control_loop import MODE_IDLE, MODE_SAFE_HOLD, ControlLoop, LoopConfig
-from nf_controller_node.episode import EpisodeRun, EpisodeSpec
-from nf_controller_node.flow_spec import FlowArchitecture
 from nf_controller_node.lyapunov import LyapunovMonitor
-from nf_controller_node.policy_params import PolicyParameters
 from nf_controller_node.torque_law import TorqueLawConfig
+from nf_core import episode, panda_spec
+from nf_core.episode import EpisodeRun, EpisodeSpec
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.policy_params import PolicyParameters
 
 # The names the fixes added are looked up when a test runs (so that, against the code before the
 # fixes, each test fails on its own instead of the whole module failing to import).

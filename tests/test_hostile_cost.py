@@ -17,11 +17,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.control_loop import ControlLoop, LoopConfig
-from nf_controller_node.flow_spec import FlowArchitecture
-from nf_controller_node.policy_params import PolicyParameters
+from nf_core import panda_spec
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.policy_params import PolicyParameters
 
 NAMES = list(panda_spec.JOINT_NAMES)
 Q0 = np.array([0.0, -0.121374, 0.0, -2.258102, 0.0, 2.136727, 0.785398])

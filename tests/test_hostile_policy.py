@@ -8,12 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from nf_controller_node import policy_params
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.control_loop import ControlLoop
-from nf_controller_node.flow_spec import FlowArchitecture
-from nf_controller_node.panda_spec import GEAR_PART
-from nf_controller_node.policy_params import PolicyParameterError, PolicyParameters
+from nf_core import policy_params
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.panda_spec import GEAR_PART
+from nf_core.policy_params import PolicyParameterError, PolicyParameters
 
 ARCH = FlowArchitecture(dim=3, n_flow=2, n_hidden=16, activation="gelu")
 X_REF = np.array([0.5, 0.0, 0.11])

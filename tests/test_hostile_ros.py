@@ -23,8 +23,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
-from nf_controller_node.panda_spec import JOINT_NAMES, TORQUE_LIMITS
 from nf_controller_node.torque_law import TorqueLawConfig
+from nf_core.panda_spec import JOINT_NAMES, TORQUE_LIMITS
 
 from ros_testing import RosProcess, allocate_domain_id
 from test_nodes import LATCHED, RELIABLE, SIM, Probe, diag_values, policy_msg

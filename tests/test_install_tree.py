@@ -13,6 +13,9 @@ from ros_testing import REPO, allocate_domain_id, ros_env
 INSTALL = REPO / "ros2_ws" / "install"
 # every ament_python package linked in the workspace (a new one is covered by these tests at once)
 PYTHON_PACKAGES = tuple(sorted(p.name for p in (REPO / "ros2_ws" / "src").iterdir() if (p / "setup.py").is_file()))
+# the ones with executables (nf_core is a library only)
+NODE_PACKAGES = tuple(p for p in PYTHON_PACKAGES
+                      if '"console_scripts"' in (REPO / "ros2_ws" / "src" / p / "setup.py").read_text())
 
 
 def _console_scripts(pkg: str) -> list[str]:
@@ -35,7 +38,11 @@ def test_interfaces_are_indexed():
         assert name in listed, f"{name} missing from {index}"
 
 
-@pytest.mark.parametrize("pkg", PYTHON_PACKAGES)
+def test_only_the_core_is_a_library():
+    assert set(PYTHON_PACKAGES) - set(NODE_PACKAGES) == {"nf_core"}
+
+
+@pytest.mark.parametrize("pkg", NODE_PACKAGES)
 def test_executables_in_lib_pkg_and_runnable(pkg):
     scripts = _console_scripts(pkg)
     assert scripts, f"{pkg} declares no console scripts"

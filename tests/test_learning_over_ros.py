@@ -21,9 +21,9 @@ from std_srvs.srv import Trigger
 
 from learner_node.config import TrainConfig
 from learner_node.trainer import Trainer, metrics_without_timing
-from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.control_loop import MODE_IDLE, JointMap
+from nf_core import panda_spec
 
 from ros_testing import REPO, RosProcess, allocate_domain_id
 from test_nodes import LATCHED, RELIABLE, Probe, policy_msg

@@ -24,10 +24,10 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from nf_controller_node.flow_spec import FlowArchitecture
-from nf_controller_node.panda_spec import TORQUE_LIMITS
-from nf_controller_node.policy_params import PolicyParameters
-from nf_controller_node.thread_priority import check_priority_allowed, top_priority
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.panda_spec import TORQUE_LIMITS
+from nf_core.policy_params import PolicyParameters
+from nf_core.thread_priority import check_priority_allowed, top_priority
 
 from ros_testing import REPO, RosProcess, allocate_domain_id, thread_policies
 

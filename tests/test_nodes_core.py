@@ -21,10 +21,10 @@ from nf_controller_node.control_loop import (
     LatencyStats,
     LoopConfig,
 )
-from nf_controller_node.flow_spec import FlowArchitecture
-from nf_controller_node.panda_spec import JOINT_NAMES, TORQUE_LIMITS
-from nf_controller_node.policy_params import PolicyParameterError, PolicyParameters
-from nf_controller_node.topics import parse_stamp_label, stamp_label
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.panda_spec import JOINT_NAMES, TORQUE_LIMITS
+from nf_core.policy_params import PolicyParameterError, PolicyParameters
+from nf_core.topics import parse_stamp_label, stamp_label
 from sim_bridge_node.bridge import ACCEPTED, BAD, STALE, BridgeConfig, SimBridge
 from sim_bridge_node.env import InsertionEnv
 

@@ -12,7 +12,7 @@ from learner_node.exploration_stability import measure, summarize
 from learner_node.param_explore import ParamExploration, make_param_optimizer, paired_advantages, param_ppo_update
 from learner_node.policy import NFPolicy
 from learner_node.trainer import CHECKPOINT, Trainer
-from nf_controller_node.flow_spec import FlowArchitecture
+from nf_core.flow_spec import FlowArchitecture
 
 TINY = {"task": "block", "iterations": 2, "rollouts_per_iter": 5, "episode_seconds": 0.2, "update_epochs": 3,
         "eval_episodes": 1, "gains": "learned", "exploration": "params", "flow_init": "identity"}

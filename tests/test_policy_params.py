@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from nf_controller_node.flow_spec import FlowArchitecture
-from nf_controller_node.policy_params import PolicyParameterError, PolicyParameters
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.policy_params import PolicyParameterError, PolicyParameters
 
 from interface_samples import policy_parameters
 

@@ -15,8 +15,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 
-from nf_controller_node import ros_runtime
-from nf_controller_node.ros_runtime import SpinLock, command_line_parameters, declare_read_only, run_node
+from nf_core import ros_runtime
+from nf_core.ros_runtime import SpinLock, command_line_parameters, declare_read_only, run_node
 
 from ros_testing import allocate_domain_id
 

@@ -13,14 +13,14 @@ import pinocchio as pin
 import pytest
 import yaml
 
-from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.control_loop import ControlLoop, LoopConfig
 from nf_controller_node.controller import FlowController
 from nf_controller_node.flow_eval import FlowEvaluator
-from nf_controller_node.flow_spec import FlowArchitecture
-from nf_controller_node.policy_params import PolicyParameters
 from nf_controller_node.torque_law import TorqueLawConfig, safe_hold_torque
+from nf_core import panda_spec
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.policy_params import PolicyParameters
 from sim_bridge_node.env import InsertionEnv
 
 Q0 = np.array([0.0, -0.121374, 0.0, -2.258102, 0.0, 2.136727, 0.785398])  # the gear scene's start

@@ -11,13 +11,13 @@ import pytest
 
 from franka_driver.robot_model import FR3, PANDA
 from learner_node.flow import init_flow_weights
-from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
 from nf_controller_node.flow_eval import FlowEvaluator
-from nf_controller_node.flow_spec import FlowArchitecture
 from nf_controller_node.serial_chain import SerialChain, chain_kinematics
 from nf_controller_node.torque_law import TorqueLawConfig
+from nf_core import panda_spec
+from nf_core.flow_spec import FlowArchitecture
 
 Q0 = np.array([0.0, -0.12, 0.0, -2.26, 0.0, 2.14, 0.785])
 

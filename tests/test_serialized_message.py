@@ -11,8 +11,8 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
-from nf_controller_node.serialized_message import SerializedMessage
-from nf_controller_node.topics import parse_stamp_label, stamp_label
+from nf_core.serialized_message import SerializedMessage
+from nf_core.topics import parse_stamp_label, stamp_label
 
 NAMES = [f"panda_joint{i}" for i in range(1, 8)]
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nf_controller_node import panda_spec
+from nf_core import panda_spec
 from sim_bridge_node.env import InsertionEnv
 from sim_bridge_node.scenes import SHAFT_LENGTH
 from sim_bridge_node.scripted_insertion import run_insertion

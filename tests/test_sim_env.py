@@ -6,7 +6,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from nf_controller_node import panda_spec
+from nf_core import panda_spec
 from sim_bridge_node.batched_env import BatchedEnv
 from sim_bridge_node.env import InsertionEnv
 from sim_bridge_node.scenes import FIXTURE_TOP, FIXTURE_XY, START_HEIGHT, TASKS, build_scene

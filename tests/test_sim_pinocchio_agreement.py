@@ -10,8 +10,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
+from nf_core import panda_spec
 from sim_bridge_node.held_parts import GEAR, PEG
 from sim_bridge_node.scenes import build_scene
 

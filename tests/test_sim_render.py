@@ -19,7 +19,7 @@ pytestmark = pytest.mark.skipif(ctypes.util.find_library("OSMesa") is None, reas
 
 def _render(args: list[str]) -> None:
     env = {**os.environ, "MUJOCO_GL": "osmesa", "PYOPENGL_PLATFORM": "osmesa",
-           "PYTHONPATH": os.pathsep.join(str(ROOT / p) for p in ("nf_controller_node", "sim_bridge_node"))}
+           "PYTHONPATH": os.pathsep.join(str(ROOT / p) for p in ("nf_core", "nf_controller_node", "sim_bridge_node"))}
     subprocess.run([sys.executable, "-m", "sim_bridge_node.render", *args], check=True, env=env, timeout=120,
                    capture_output=True)
 

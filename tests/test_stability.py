@@ -21,7 +21,7 @@ import pytest
 
 from learner_node.flow import init_flow_weights
 from nf_controller_node.flow_eval import FlowEvaluator
-from nf_controller_node.flow_spec import FlowArchitecture
+from nf_core.flow_spec import FlowArchitecture
 
 import point_mass
 

@@ -1,4 +1,4 @@
-"""The 1 kHz loop thread's realtime priority (``nf_controller_node.thread_priority``, the drivers'
+"""The 1 kHz loop thread's realtime priority (``nf_core.thread_priority``, the drivers'
 ``rt_priority``): libfranka's ``Robot()`` puts its calling thread at SCHED_FIFO 99 (checked here
 against franky-sim) and ``open_robot`` gives it back; the priority is resolved from the parameter,
 set by the kernel on the loop's thread only, and refused with a clear error (exit 2, before any
@@ -16,13 +16,13 @@ import time
 
 import pytest
 
-from franka_driver.thread_priority import open_robot
-from nf_controller_node.thread_priority import (
+from nf_core.thread_priority import (
     AUTO,
     apply,
     check_priority_allowed,
     current_thread_policy,
     enter_loop_thread,
+    open_robot,
     resolve_priority,
 )
 
@@ -84,9 +84,9 @@ def test_the_kernel_refusing_fifo_gives_a_message_that_says_what_to_do():
     prefix = _without_sys_nice()
     if prefix is None:
         pytest.skip("cannot take the realtime privilege away from a child process here")
-    source = str(REPO / "nf_controller_node")
+    source = str(REPO / "nf_core")
     code = (f"import sys; sys.path.insert(0, {source!r}); "
-            "from nf_controller_node.thread_priority import check_priority_allowed, enter_loop_thread; "
+            "from nf_core.thread_priority import check_priority_allowed, enter_loop_thread; "
             "print(check_priority_allowed(10)); print(enter_loop_thread(10))")
     out = subprocess.run([*prefix, sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr

@@ -2,7 +2,7 @@
 
 import pytest
 
-from nf_controller_node.tick_timing import LONG_LATE_RUN, TickTiming
+from nf_core.tick_timing import LONG_LATE_RUN, TickTiming
 
 
 def feed(t: TickTiming, lateness: list[bool], start: float = 0.0, dt: float = 1e-3) -> float:

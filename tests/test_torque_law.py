@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nf_controller_node import panda_spec
 from nf_controller_node.torque_law import (
     CLAMPED,
     NOT_FINITE,
@@ -18,6 +17,7 @@ from nf_controller_node.torque_law import (
     safe_hold_torque,
     task_space_torque,
 )
+from nf_core import panda_spec
 
 LIMITS = panda_spec.TORQUE_LIMITS
 

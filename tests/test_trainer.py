@@ -25,7 +25,7 @@ from learner_node.trainer import (
     policy_sigma,
     run_evaluations,
 )
-from nf_controller_node.reward import REWARD_TERMS, RewardWeights, reward_terms
+from nf_core.reward import REWARD_TERMS, RewardWeights, reward_terms
 
 TINY = {"task": "block", "iterations": 2, "rollouts_per_iter": 3, "episode_seconds": 0.2, "minibatch_size": 16,
         "update_epochs": 2, "eval_episodes": 2}

@@ -186,7 +186,7 @@ def joint_trajectory(bag: str | Path, topic: str = JOINT_STATES) -> JointTraject
 def commands_by_state(bag: str | Path, topic: str = COMMANDS) -> tuple[dict[int, np.ndarray], int]:
     """Lockstep commands keyed by the stamp of the state they answer (the first answer per state,
     the one a lockstep sim applies), and the number of commands without that label."""
-    from nf_controller_node.topics import parse_stamp_label
+    from nf_core.topics import parse_stamp_label
 
     out: dict[int, np.ndarray] = {}
     unlabeled = 0

@@ -26,7 +26,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.utilities import remove_ros_args
 
-from nf_controller_node.ros_runtime import run_node
+from nf_core.ros_runtime import run_node
 
 from .writer import BagWriter, WriterConfig, qos_dict
 

@@ -30,7 +30,7 @@ TOPICS = ["/joint_states", "/effort_controller/commands", "/clock", "/task_statu
 def _env(domain: int) -> dict[str, str]:
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
     env.pop("ROS_STATIC_PEERS", None)
-    paths = [str(REPO / p) for p in ("nf_controller_node", "learner_node", "sim_bridge_node", "bags")]
+    paths = [str(REPO / p) for p in ("nf_core", "nf_controller_node", "learner_node", "sim_bridge_node", "bags")]
     env["PYTHONPATH"] = os.pathsep.join([*paths, env.get("PYTHONPATH", "")])
     return env
 
@@ -58,10 +58,11 @@ def record_sample(out: Path, duration: float = 1.5, seed: int = 3, domain: int |
     from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
     from rclpy.action import ActionClient
     from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-    from nf_controller_node.flow_spec import FlowArchitecture
-    from nf_controller_node.policy_params import PolicyParameters
+    from nf_core import qos
+    from nf_core.flow_spec import FlowArchitecture
+    from nf_core.policy_params import PolicyParameters
+    from nf_core.topics import POLICY_PARAMETERS
     from sim_bridge_node.env import InsertionEnv
 
     domain = domain if domain is not None else 150 + os.getpid() % 80
@@ -91,9 +92,7 @@ def record_sample(out: Path, duration: float = 1.5, seed: int = 3, domain: int |
         weights = np.random.default_rng(0).uniform(-0.25, 0.25, arch.n_params)
         params = PolicyParameters(arch, weights, np.array([np.log(2.0)]), 40.0 * np.eye(3), 20.0 * np.eye(3),
                                   InsertionEnv("gear").goal_position, version=1)
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        node.create_publisher(PolicyParametersMsg, "/policy_parameters", latched).publish(
+        node.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, qos.POLICY).publish(
             params.fill_msg(PolicyParametersMsg()))
         log = logs / "recorder.log"
         if not spin_until(lambda: all(f"recording {t} (" in log.read_text() for t in TOPICS), 40):

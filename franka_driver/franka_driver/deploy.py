@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nf_controller_node.policy_params import PolicyParameters
+from nf_core.policy_params import PolicyParameters
 
 
 def load_checkpoint_policy(path: str | Path) -> tuple[PolicyParameters, int]:
@@ -70,10 +70,10 @@ def main(argv: list[str] | None = None) -> int:
     """Console script ``deploy_policy``."""
     import rclpy
     from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.utilities import remove_ros_args
 
-    from nf_controller_node.topics import POLICY_PARAMETERS
+    from nf_core import qos
+    from nf_core.topics import POLICY_PARAMETERS
 
     argv = list(sys.argv if argv is None else argv)
     args = _parser().parse_args(remove_ros_args(argv)[1:])
@@ -81,8 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     params = prepare(params, None if args.keep_x_ref else args.x_ref, args.version)
     rclpy.init(args=argv)
     node = rclpy.create_node("deploy_policy")
-    qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    pub = node.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, qos)
+    pub = node.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, qos.POLICY)
     pub.publish(params.fill_msg(PolicyParametersMsg()))
     a = params.arch
     node.get_logger().info(f"published {args.checkpoint} (iteration {iteration}) as version {params.version}: "

@@ -132,7 +132,7 @@ def configure_gear_load(robot: Any) -> tuple[float, np.ndarray]:
     """Tell franky-sim's dynamics model (its gravity compensation) about the gear as the robot's
     end-effector load: mass, centre of mass in the flange frame, inertia (column-major). Returns
     (mass, centre of mass in the flange frame)."""
-    from nf_controller_node.panda_spec import GEAR_PART
+    from nf_core.panda_spec import GEAR_PART
 
     c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
     flange_R_hand = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # hand = flange turned -45 deg
@@ -146,7 +146,7 @@ def gear_report(model: Any, data: Any) -> str:
     """The compiled gear task: fixture mouth (base frame and world), the gear's body, mass, TCP."""
     import mujoco
 
-    from nf_controller_node.panda_spec import GEAR_PART
+    from nf_core.panda_spec import GEAR_PART
 
     def body(name: str) -> int:
         return mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)

@@ -38,12 +38,12 @@ from typing import Any
 
 import numpy as np
 
-from nf_controller_node.episode import EpisodeRun
 from nf_controller_node.flow_eval import FlowEvaluator
-from nf_controller_node.flow_spec import FlowArchitecture
 from nf_controller_node.host import ControllerHost
-from nf_controller_node.policy_params import PolicyParameters
-from nf_controller_node.tick_timing import LATE_AFTER, TickTiming
+from nf_core.episode import EpisodeRun
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.policy_params import PolicyParameters
+from nf_core.tick_timing import LATE_AFTER, TickTiming
 
 GRAVITY_MARGIN = 0.5  # Nm kept free below a joint's limit on top of the robot's gravity torque
 

@@ -2,8 +2,8 @@
 the flow controller in the same process.
 
 The node connects to the robot (``robot_ip``; ``realtime`` enforce | ignore; ``rt_priority``, the
-torque loop thread's SCHED_FIFO priority: ``nf_controller_node.thread_priority``; libfranka's own
-raise of its caller's: ``franka_driver.thread_priority``), identifies the arm
+torque loop thread's SCHED_FIFO priority, and libfranka's own raise of its caller's given back:
+``nf_core.thread_priority``), identifies the arm
 against the robot's own dynamics model (``franka_driver.robot_model``), builds the controller's
 Pinocchio model of that arm, and runs ``franka_driver.loop.FrankaDriverLoop`` on a driver thread:
 per tick readOnce -> controller -> writeOnce. It is always composed with an ``nf_controller``
@@ -30,19 +30,17 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from nf_controller_node import topics
-from nf_controller_node.panda_spec import HELD_PART_NAMES, held_part_by_name
-from nf_controller_node.ros_runtime import declare_read_only
-from nf_controller_node.serialized_message import SerializedMessage
-from nf_controller_node.thread_priority import AUTO, check_priority_allowed, enter_loop_thread, resolve_priority
+from nf_core import qos, topics
+from nf_core.panda_spec import HELD_PART_NAMES, held_part_by_name
+from nf_core.ros_runtime import declare_read_only
+from nf_core.serialized_message import SerializedMessage
+from nf_core.thread_priority import AUTO, check_priority_allowed, enter_loop_thread, open_robot, resolve_priority
 
 from .loop import DriverConfig, FrankaDriverLoop, summary_us
 from .robot_model import ROBOT_KINDS, Identification, WrongRobotModelError, identify
-from .thread_priority import open_robot
 
 _D = DriverConfig()
 PARAMETERS = {
@@ -72,8 +70,6 @@ PARAMETERS = {
     "diagnostics_period": (1.0, "s between /diagnostics messages"),
     "timing_log": ("", "file (.npy) for every read->write latency, periods and a .json summary at shutdown"),
 }
-PUBLISH_QOS = QoSProfile(depth=topics.PUBLISH_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
-DIAG_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def _check(p: dict) -> None:
@@ -151,8 +147,8 @@ class FrankaDriverNode(Node):
         msg = JointState(name=list(self.joint_names), position=[0.0] * n, velocity=[0.0] * n, effort=[0.0] * n)
         # serialized once and rewritten in place: less GIL time on the executor per message
         self._state_raw = SerializedMessage(msg, floats=("position", "velocity", "effort"), stamp="header.stamp")
-        self._state_pub = self.create_publisher(JointState, topics.JOINT_STATES, PUBLISH_QOS)
-        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, DIAG_QOS)
+        self._state_pub = self.create_publisher(JointState, topics.JOINT_STATES, qos.PUBLISH)
+        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos.DIAGNOSTICS)
         self.create_service(Trigger, "~/recover", self._on_recover)
         self.create_timer(1.0 / p["joint_state_rate"], self._publish_state)
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)

@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
+from nf_core import panda_spec
 
 ROBOT_KINDS = ("auto", "fr3", "panda")
 # Relative Frobenius error of the mass matrix below which a description matches the robot, and

@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from nf_controller_node.flow_spec import ACTIVATIONS, FLOW_INITS
+from nf_core.flow_spec import ACTIVATIONS, FLOW_INITS
+from nf_core.reward import DEFAULT_WEIGHTS
 
 TASKS = ("gear", "peg", "block")
 POLICIES = ("nf", "mlp")
@@ -133,15 +134,15 @@ class TrainConfig:
     target_kl: float = 0.0
     """Stop an update once a minibatch shows approx_kl > 1.5 x this before its step, as
     stable-baselines3 does (0: never)."""
-    reward_w: float = 1.0
-    """Reward weight w of the squared distance |d|^2 (d in m)."""
-    reward_v: float = 2.0
+    reward_w: float = DEFAULT_WEIGHTS.w
+    """Reward weight w of the squared distance |d|^2 (defaults and meanings: ``nf_core.reward``)."""
+    reward_v: float = DEFAULT_WEIGHTS.v
     """Reward weight v of the log-distance term v ln((|d|^2 + a) / a)."""
-    reward_a: float = 1e-5
-    """Offset a of the log-distance term, m^2 (sets the scale where it saturates, ~3 mm)."""
-    reward_velocity: float = 0.1
+    reward_a: float = DEFAULT_WEIGHTS.a
+    """Offset a of the log-distance term, m^2."""
+    reward_velocity: float = DEFAULT_WEIGHTS.velocity
     """Reward weight of the squared TCP speed |xdot|^2 (m/s)."""
-    reward_action: float = 1e-3
+    reward_action: float = DEFAULT_WEIGHTS.action
     """Reward weight of the squared action force |u|^2 (N)."""
     eval_episodes: int = 10
     """Final evaluation: episodes of the deterministic controller from held-out starts (1 if start=fixed)."""

@@ -28,7 +28,7 @@ import math
 import numpy as np
 
 from nf_controller_node.controller import FlowController
-from nf_controller_node.episode import EpisodeRun
+from nf_core.episode import EpisodeRun
 
 from .config import TrainConfig
 from .rollout import BLOCK_AXES, RolloutRunner

@@ -32,11 +32,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
 from nf_controller_node.flow_eval import FlowEvaluator
 from nf_controller_node.torque_law import CLAMPED, RATE_LIMITED
+from nf_core import panda_spec
 from sim_bridge_node.env import InsertionEnv
 
 from .config import PHYSICS_DT, TrainConfig

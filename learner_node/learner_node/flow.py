@@ -1,7 +1,7 @@
 """RealNVP flow in torch for learning, with an analytic, batched, differentiable Jacobian.
 
 The architecture and the flat weight layout are defined once in
-``nf_controller_node.flow_spec``; this module and the compiled evaluator
+``nf_core.flow_spec``; this module and the compiled evaluator
 (``nf_controller_node.flow_eval``) both follow it. ``phi_and_jacobian`` builds J = dphi/dx
 layer by layer with the chain rule (no autograd over x), so PPO can backpropagate through J
 to the weights at the cost of one forward pass.
@@ -24,7 +24,7 @@ import torch
 from torch import nn
 from torch.autograd.function import FunctionCtx, once_differentiable
 
-from nf_controller_node.flow_spec import ACTIVATION_CODES, FLOW_INITS, FlowArchitecture
+from nf_core.flow_spec import ACTIVATION_CODES, FLOW_INITS, FlowArchitecture
 
 from .flow_kernels import flow_backward, flow_forward, layer_table
 

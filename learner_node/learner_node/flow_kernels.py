@@ -32,7 +32,7 @@ from typing import Any
 import numba
 import numpy as np
 
-from nf_controller_node.flow_spec import FlowArchitecture
+from nf_core.flow_spec import FlowArchitecture
 
 MAX_DIM = 3
 # Layer table row: [d_cond, d_trans, offset of the s-MLP, offset of the t-MLP, cond[0:3], trans[0:3]].

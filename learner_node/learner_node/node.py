@@ -31,12 +31,12 @@ from rclpy.action import ActionClient
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 
-from nf_controller_node.policy_params import PolicyParameters
-from nf_controller_node.ros_runtime import SpinLock, run_node
-from nf_controller_node.topics import CONTROLLER_STATUS, POLICY_PARAMETERS, ROLLOUTS, RUN_EPISODE
+from nf_core import qos
+from nf_core.policy_params import PolicyParameters
+from nf_core.ros_runtime import SpinLock, run_node
+from nf_core.topics import CONTROLLER_STATUS, POLICY_PARAMETERS, ROLLOUTS, RUN_EPISODE
 
 from .config import TrainConfig
 from .rollout import EpisodeRecord
@@ -53,8 +53,6 @@ from .trainer import (
 )
 
 LOG = logging.getLogger("learner_node")
-POLICY_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-CHUNK_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 ROLLOUT_VERSIONS = 1000  # parameter exploration: policy versions per iteration (one per rollout)
 NODE_PARAMETERS = {  # learner_node's own settings besides TrainConfig's
     "out_dir": "runs/ros",
@@ -107,8 +105,8 @@ class LearnerNode(Node):
         self.controller_mode: int | None = None  # latest ControllerStatus mode
         self.create_subscription(ControllerStatus, CONTROLLER_STATUS, self._on_status, 10)
         self._clear = self.create_client(Trigger, self.settings["clear_fault_service"])
-        self._policy_pub = self.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, POLICY_QOS)
-        self.create_subscription(RolloutChunk, ROLLOUTS, self.chunks.add, CHUNK_QOS)
+        self._policy_pub = self.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, qos.POLICY)
+        self.create_subscription(RolloutChunk, ROLLOUTS, self.chunks.add, qos.ROLLOUTS)
         self._action = ActionClient(self, RunEpisode, RUN_EPISODE)
         self.success_depth = 0.016  # m; set from the trainer's scene by RosTraining
         self.spin_lock = SpinLock()  # held by each executor spin slice (ros_runtime.run_node)

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from nf_controller_node.policy_params import PolicyParameters
+from nf_core.policy_params import PolicyParameters
 
 from .policy import LN_MAX_DAMPING, LN_MAX_STIFFNESS, NFPolicy
 from .ppo import approx_kl, clipped_surrogate_loss

@@ -22,8 +22,8 @@ import torch
 from torch import nn
 from torch.autograd.function import FunctionCtx, once_differentiable
 
-from nf_controller_node.flow_spec import FlowArchitecture
-from nf_controller_node.policy_params import POLICY_LIMITS, PolicyParameters
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.policy_params import POLICY_LIMITS, PolicyParameters
 
 from .flow import RealNVPFlow
 from .flow_kernels import force_backward, force_forward

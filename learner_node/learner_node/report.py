@@ -139,9 +139,9 @@ def freespace_check(cfg: TrainConfig, policy: object, seconds: float = FREESPACE
                     starts: int = FREESPACE_STARTS) -> dict[str, Any]:
     """The deterministic controller of ``policy`` on the Panda in the free scene (no fixture) from
     ``starts`` held-out random starts for ``seconds``: final distance to x_ref, speed, converged flag."""
-    from nf_controller_node import panda_spec
     from nf_controller_node.arm_model import ArmModel
     from nf_controller_node.controller import FlowController
+    from nf_core import panda_spec
     from sim_bridge_node.env import InsertionEnv
 
     env = InsertionEnv("free")

@@ -18,7 +18,7 @@ Reward of decision k (DESIGN section 2), from the state at the end of the period
 with every term reported separately (``reward_terms``); their sum is the reward.
 
 The noise, the per-decision record, the reward and the log-densities come from the controller's
-episode core (``nf_controller_node.episode.EpisodeRun``), the same object the controller runs over
+episode core (``nf_core.episode.EpisodeRun``), the same object the controller runs over
 ROS; this module steps the simulated world and closes each decision with the simulator's state.
 """
 
@@ -29,12 +29,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
-from nf_controller_node.episode import EpisodeRun, EpisodeSpec
-from nf_controller_node.reward import RewardWeights
 from nf_controller_node.torque_law import excess_norm
+from nf_core import panda_spec
+from nf_core.episode import EpisodeRun, EpisodeSpec
+from nf_core.reward import RewardWeights
 from sim_bridge_node.env import InsertionEnv
 
 from .config import TrainConfig

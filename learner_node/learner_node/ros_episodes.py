@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from nf_controller_node.reward import REWARD_TERMS
+from nf_core.reward import REWARD_TERMS
 
 from .rollout import EpisodeRecord
 

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from nf_controller_node.flow_eval import FlowEvaluator
-from nf_controller_node.flow_spec import ACTIVATIONS, FlowArchitecture
+from nf_core.flow_spec import ACTIVATIONS, FlowArchitecture
 
 from .flow import init_flow_weights
 from .policy import NFPolicy

@@ -23,9 +23,9 @@ import torch
 from tqdm import tqdm
 
 from nf_controller_node.flow_eval import FlowEvaluator
-from nf_controller_node.flow_spec import FlowArchitecture
-from nf_controller_node.policy_params import PolicyParameters
-from nf_controller_node.reward import REWARD_TERMS
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.policy_params import PolicyParameters
+from nf_core.reward import REWARD_TERMS
 
 from .config import TrainConfig
 from .mlp_policy import MLPEvaluator, MLPPolicy

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
 from nf_controller_node.flow_eval import FlowEvaluator
-from nf_controller_node.policy_params import PolicyParameters
+from nf_core import panda_spec
+from nf_core.policy_params import PolicyParameters
 from sim_bridge_node.env import InsertionEnv
 from sim_bridge_node.held_parts import PEG
 from sim_bridge_node.render import _camera, _default_gl_backend, save_gif

@@ -19,7 +19,7 @@ import sys
 from rclpy.node import Node
 
 from nf_controller_node.node import NFControllerNode
-from nf_controller_node.ros_runtime import freeze_heap, run_node
+from nf_core.ros_runtime import freeze_heap, run_node
 from sim_bridge_node.node import SimBridgeNode
 
 # GIL hand-over interval (s) of the composed process in realtime mode. Python's default, 5 ms, lets

@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from . import panda_spec
+from nf_core import panda_spec
+
 from .serial_chain import SerialChain, chain_kinematics
 
 

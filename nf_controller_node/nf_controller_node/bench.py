@@ -17,11 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.policy_params import PolicyParameters
+
 from .arm_model import ArmModel
 from .controller import FlowController
 from .flow_eval import FlowEvaluator
-from .flow_spec import FlowArchitecture
-from .policy_params import PolicyParameters
 from .torque_law import task_space_torque
 
 Q_HOME = np.array([0.0, -0.12, 0.0, -2.26, 0.0, 2.14, 0.785])

@@ -19,6 +19,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nf_core.episode import EpisodeRun, check_task_depth
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.panda_spec import (
+    DQ_PLAUSIBLE_FACTOR,
+    DQ_PLAUSIBLE_MAX,
+    JOINT_NAMES,
+    Q_MAX,
+    Q_MIN,
+    Q_PLAUSIBLE_MARGIN,
+    Q_PLAUSIBLE_MAX,
+    Q_PLAUSIBLE_MIN,
+)
+from nf_core.policy_params import POLICY_LIMITS, PolicyLimits, PolicyParameterError, PolicyParameters
+
 from .arm_model import ArmModel
 from .controller import (
     DQ_IMPLAUSIBLE,
@@ -29,21 +43,8 @@ from .controller import (
     FlowController,
     state_problem,
 )
-from .episode import EpisodeRun, check_task_depth
 from .flow_eval import FlowEvaluator
-from .flow_spec import FlowArchitecture
 from .lyapunov import LyapunovMonitor
-from .panda_spec import (
-    DQ_PLAUSIBLE_FACTOR,
-    DQ_PLAUSIBLE_MAX,
-    JOINT_NAMES,
-    Q_MAX,
-    Q_MIN,
-    Q_PLAUSIBLE_MARGIN,
-    Q_PLAUSIBLE_MAX,
-    Q_PLAUSIBLE_MIN,
-)
-from .policy_params import POLICY_LIMITS, PolicyLimits, PolicyParameterError, PolicyParameters
 from .torque_law import TorqueLawConfig, excess_norm
 
 # ControllerStatus modes (same numbers as nf_msgs/msg/ControllerStatus).

@@ -20,8 +20,8 @@ from typing import Any
 import numba
 import numpy as np
 
-from .flow_spec import ACTIVATION_CODES, FlowArchitecture
-from .policy_params import PolicyParameters
+from nf_core.flow_spec import ACTIVATION_CODES, FlowArchitecture
+from nf_core.policy_params import PolicyParameters
 
 MAX_DIM = 3
 

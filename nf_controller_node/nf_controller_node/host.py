@@ -35,8 +35,9 @@ from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
+from nf_core.episode import Chunk, EpisodeRun
+
 from .control_loop import ControlLoop
-from .episode import Chunk, EpisodeRun
 
 T = TypeVar("T")
 

@@ -36,32 +36,33 @@ from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
 from nf_msgs.srv import ResetSim
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 
-from .arm_model import ArmModel
-from .control_loop import MODE_IDLE, MODE_RESETTING, MODE_RUNNING, MODE_SAFE_HOLD, ControlLoop, LoopConfig
-from .episode import Chunk, EpisodeRun, EpisodeSpec, check_goal_duration
-from .host import CHUNK, EPISODE_END, FAULT, ControllerHost, EpisodeDriver, success_of
-from .panda_spec import HELD_PART_NAMES, held_part_by_name
-from .policy_params import PolicyParameterError, PolicyParameters
-from .reward import RewardWeights
-from .ros_runtime import declare_read_only, run_node
-from .topics import (
+from nf_core import qos
+from nf_core.episode import Chunk, EpisodeRun, EpisodeSpec, check_goal_duration
+from nf_core.panda_spec import HELD_PART_NAMES, held_part_by_name
+from nf_core.policy_params import PolicyParameterError, PolicyParameters
+from nf_core.reward import RewardWeights, reward_parameter_defaults
+from nf_core.ros_runtime import declare_read_only, run_node
+from nf_core.topics import (
     COMMANDS,
     CONTROLLER_STATUS,
     DIAGNOSTICS,
     JOINT_STATES,
     POLICY_PARAMETERS,
-    PUBLISH_DEPTH,
     ROLLOUTS,
     RUN_EPISODE,
     SIM_RESET,
     TASK_STATUS,
     stamp_label,
 )
+
+from .arm_model import ArmModel
+from .control_loop import MODE_IDLE, MODE_RESETTING, MODE_RUNNING, MODE_SAFE_HOLD, ControlLoop, LoopConfig
+from .host import CHUNK, EPISODE_END, FAULT, ControllerHost, EpisodeDriver, success_of
 from .torque_law import TorqueLawConfig
 
 _LAW = TorqueLawConfig()
@@ -90,24 +91,10 @@ PARAMETERS = {
     "chunk_decisions": (100, "decisions per streamed rollout chunk"),
     "policy_wait": (10.0, "s an episode waits for the policy version it asks for"),
     "reset_timeout": (60.0, "composed: s the driver may take to reset the world (a robot moves there)"),
-    "reward_w": (1.0, "reward: weight of |d|^2"),
-    "reward_v": (2.0, "reward: weight of ln((|d|^2 + a) / a)"),
-    "reward_a": (1.0e-5, "reward: offset a, m^2"),
-    "reward_velocity": (0.1, "reward: weight of |xdot|^2"),
-    "reward_action": (1.0e-3, "reward: weight of |u|^2"),
+    **reward_parameter_defaults(),
     "diagnostics_period": (1.0, "s between /diagnostics messages"),
 }
-STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-PUBLISH_QOS = QoSProfile(depth=PUBLISH_DEPTH, reliability=ReliabilityPolicy.RELIABLE)  # see topics.PUBLISH_DEPTH
-POLICY_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _MODE_NAMES = {MODE_IDLE: "idle", MODE_RUNNING: "running", MODE_SAFE_HOLD: "safe_hold", MODE_RESETTING: "resetting"}
-
-
-class _Attrs:
-    """Dict keys as attributes (the reward weights read a config object)."""
-
-    def __init__(self, d: dict) -> None:
-        self.__dict__.update(d)
 
 
 SETUP_POLL = 0.002  # s, how often a goal being set up looks at its policy version and reset
@@ -147,7 +134,7 @@ def _loop_from(p: dict, arm: ArmModel | None = None, joint_names: Sequence[str] 
                         state_timeout=p["state_timeout"], idle_mode=p["idle_mode"])
     if not p["chunk_decisions"] >= 1:
         raise ValueError(f"chunk_decisions must be >= 1, got {p['chunk_decisions']}")
-    RewardWeights.from_config(_Attrs(p)).check()
+    RewardWeights.from_params(p).check()
     if arm is None:
         arm = ArmModel(part=part)
     if joint_names is None:
@@ -177,7 +164,7 @@ class NFControllerNode(Node):
     ``joint_names`` let a driver give the model and joint names of the robot it is connected to.
     """
 
-    def __init__(self, state_qos: QoSProfile = STATE_QOS, policy_qos: QoSProfile = POLICY_QOS, *,
+    def __init__(self, state_qos: QoSProfile = qos.STATE, policy_qos: QoSProfile = qos.POLICY, *,
                  composed: bool = False, arm: ArmModel | None = None,
                  joint_names: Sequence[str] | None = None, name: str = "nf_controller") -> None:
         super().__init__(name)
@@ -188,11 +175,10 @@ class NFControllerNode(Node):
         self.host = ControllerHost(self.loop)
         self._driver: EpisodeDriver | None = None
         self._status_pub = self.create_publisher(ControllerStatus, CONTROLLER_STATUS, state_qos)
-        self._diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS, state_qos)
+        self._diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS, qos.DIAGNOSTICS)
         self.create_subscription(PolicyParametersMsg, POLICY_PARAMETERS, self._on_policy, policy_qos)
         self.create_service(Trigger, "~/clear_fault", self._on_clear_fault)
-        self._chunk_pub = self.create_publisher(RolloutChunk, ROLLOUTS, QoSProfile(
-            depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        self._chunk_pub = self.create_publisher(RolloutChunk, ROLLOUTS, qos.ROLLOUTS)
         self._reset_client = None
         if composed:
             self.host.notify = self._post_drain
@@ -201,14 +187,14 @@ class NFControllerNode(Node):
             self._dim = MultiArrayDimension(label="", size=self.loop.n, stride=self.loop.n)
             self._cmd = Float64MultiArray()
             self._cmd.layout.dim = [self._dim]
-            self._cmd_pub = self.create_publisher(Float64MultiArray, COMMANDS, PUBLISH_QOS)
+            self._cmd_pub = self.create_publisher(Float64MultiArray, COMMANDS, qos.PUBLISH)
             self.create_subscription(JointState, JOINT_STATES, self._on_joint_state, state_qos)
             self.create_subscription(TaskStatus, TASK_STATUS, self._on_task_status, state_qos)
             if p["reset_service"]:
                 self._reset_client = self.create_client(ResetSim, p["reset_service"])
             if p["state_timeout"] > 0.0:
                 self.create_timer(max(p["state_timeout"] / 4.0, 0.001), self._on_watchdog)
-        self._weights = RewardWeights.from_config(_Attrs(p))
+        self._weights = RewardWeights.from_params(p)
         self._episode_ids = itertools.count(int(time.time() * 1000) * 1000)  # unique across restarts
         self._episode_run: EpisodeRun | None = None
         self._goal = None

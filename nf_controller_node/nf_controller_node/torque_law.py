@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from . import panda_spec
+from nf_core import panda_spec
 
 # Result flags of the torque kernels (bit mask).
 CLAMPED = 1  # a joint torque hit its limit

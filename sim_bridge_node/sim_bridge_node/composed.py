@@ -28,9 +28,9 @@ from concurrent.futures import Future
 
 import numpy as np
 
-from nf_controller_node.episode import EpisodeRun
 from nf_controller_node.host import ControllerHost
-from nf_controller_node.tick_timing import LATE_AFTER, TickTiming
+from nf_core.episode import EpisodeRun
+from nf_core.tick_timing import LATE_AFTER, TickTiming
 from sim_bridge_node.bridge import ACCEPTED, SimBridge
 from sim_bridge_node.deadline_wait import DeadlineWait
 

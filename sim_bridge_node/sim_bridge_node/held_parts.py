@@ -10,7 +10,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from nf_controller_node import panda_spec
+from nf_core import panda_spec
 from sim_bridge_node.panda_model import CONTACT_MOVING, set_weld_inertia
 
 GEAR_SEGMENTS = 16  # box pieces around the bore; the bore is the regular 16-gon of inradius 15 mm

@@ -25,7 +25,7 @@ Nothing reads those four monitoring topics on the tick's path, so they go out on
 have a subscriber (looked up every ``LISTENERS_PERIOD``; ``/diagnostics`` counts what was left
 out as ``monitor_skipped``): a headless learning run does not pay for them.
 In realtime mode the driver thread, and only it, runs at the SCHED_FIFO priority ``rt_priority``
-gives (``nf_controller_node.thread_priority``; auto: 99 when the system allows it), as the Franka
+gives (``nf_core.thread_priority``; auto: 99 when the system allows it), as the Franka
 driver's torque loop does.
 """
 
@@ -43,23 +43,23 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nf_msgs.msg import TaskStatus
 from nf_msgs.srv import ResetSim
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
-from nf_controller_node import topics
 from nf_controller_node.host import ControllerHost
-from nf_controller_node.ros_runtime import declare_read_only, run_node
-from nf_controller_node.serialized_message import SerializedMessage
-from nf_controller_node.thread_priority import (
+from nf_core import qos, topics
+from nf_core.ros_runtime import declare_read_only, run_node
+from nf_core.serialized_message import SerializedMessage
+from nf_core.thread_priority import (
     AUTO,
     check_priority_allowed,
     enter_loop_thread,
     resolve_priority,
     top_priority,
 )
-from nf_controller_node.topics import parse_stamp_label
+from nf_core.topics import parse_stamp_label
 from sim_bridge_node.bridge import ACCEPTED, BridgeConfig, SimBridge
 from sim_bridge_node.composed import SimDriverLoop, latencies_us
 from sim_bridge_node.env import InsertionEnv
@@ -95,8 +95,6 @@ PARAMETERS = {
     "response_log": ("", "realtime: every latency to this .npy (+ .json summary) at shutdown; folder checked at start"),
 }
 
-STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)  # ros2_control's default
-PUBLISH_QOS = QoSProfile(depth=topics.PUBLISH_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
 _LATE_TICK = 2.0  # realtime: a tick later than this many periods counts as late
 LISTENERS_PERIOD = 0.2  # s, composed: how often the driver thread looks up who subscribes to its monitoring
 _ALL_LISTENED = (True, True, True, True)  # joint_states, applied commands, clock, task_status
@@ -132,7 +130,7 @@ def _check(p: dict) -> None:
 class SimBridgeNode(Node):
     """Wires a ``SimBridge`` to ros2_control-style topics; see the module docstring."""
 
-    def __init__(self, qos: QoSProfile = STATE_QOS, host: ControllerHost | None = None) -> None:
+    def __init__(self, state_qos: QoSProfile = qos.STATE, host: ControllerHost | None = None) -> None:
         super().__init__("sim_bridge")
         p = declare_read_only(self, PARAMETERS)
         _check(p)
@@ -169,14 +167,14 @@ class SimBridgeNode(Node):
                                             stamp="header.stamp")
         self._clock_msg = Clock()
         self._clock_raw = SerializedMessage(self._clock_msg, stamp="clock")
-        self._state_pub = self.create_publisher(JointState, topics.JOINT_STATES, PUBLISH_QOS)
-        self._clock_pub = self.create_publisher(Clock, topics.CLOCK, PUBLISH_QOS) if self.lockstep else None
-        self._task_pub = self.create_publisher(TaskStatus, topics.TASK_STATUS, PUBLISH_QOS)
+        self._state_pub = self.create_publisher(JointState, topics.JOINT_STATES, qos.PUBLISH)
+        self._clock_pub = self.create_publisher(Clock, topics.CLOCK, qos.PUBLISH) if self.lockstep else None
+        self._task_pub = self.create_publisher(TaskStatus, topics.TASK_STATUS, qos.PUBLISH)
         self._task_msg = TaskStatus(task=self.bridge.env.task, part_position=[0.0, 0.0, 0.0])
         self._task_msg.header.frame_id = "world"
         self._task_raw = SerializedMessage(self._task_msg, floats=("insertion_depth", "contact_force", "part_position"),
                                            bools=("success",), stamp="header.stamp")
-        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos)
+        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos.DIAGNOSTICS)
         self.create_service(ResetSim, "~/reset", self._on_reset)
         self.driver: SimDriverLoop | None = None
         self._driver_thread: threading.Thread | None = None
@@ -190,11 +188,11 @@ class SimBridgeNode(Node):
             self._cmd.layout.dim = [self._cmd_dim]
             self._cmd.data = [0.0] * n
             self._cmd_raw = SerializedMessage(self._cmd, floats=("data",), texts=("layout.dim.0.label",))
-            self._cmd_pub = self.create_publisher(Float64MultiArray, topics.COMMANDS, PUBLISH_QOS)
+            self._cmd_pub = self.create_publisher(Float64MultiArray, topics.COMMANDS, qos.PUBLISH)
             self._host = host
         else:
             on_command = self._on_command_lockstep if self.lockstep else self._on_command_realtime
-            self.create_subscription(Float64MultiArray, topics.COMMANDS, on_command, qos)
+            self.create_subscription(Float64MultiArray, topics.COMMANDS, on_command, state_qos)
 
         # composed: the monitoring messages (joint states, applied commands, clock, task status) go
         # out only while a topic has a subscriber; a headless learning run does not pay for them

@@ -20,7 +20,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from nf_controller_node import panda_spec
+from nf_core import panda_spec
 
 TIMESTEP = 0.001  # s, 1 kHz
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from nf_controller_node import panda_spec
+from nf_core import panda_spec
 from sim_bridge_node.held_parts import HeldPart, add_gear, add_peg
 from sim_bridge_node.panda_model import CONTACT_MOVING, TIMESTEP, load_panda_spec
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from learner_node.config import TrainConfig
 from learner_node.trainer import EVAL_SEED_BASE, Trainer, make_evaluator
-from nf_controller_node import panda_spec
+from nf_core import panda_spec
 
 SETS = dict(stiffness_axial="none", flow_init="identity", gains="learned", exploration="params",
             param_sigma_gains="0.5", param_lr="0.1", param_sigma_lr="0.01", param_sigma_decay="0.97",

@@ -5,9 +5,9 @@ import numpy as np
 
 from learner_node.config import TrainConfig
 from learner_node.trainer import EVAL_SEED_BASE, Trainer, make_evaluator
-from nf_controller_node import panda_spec
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
+from nf_core import panda_spec
 from sim_bridge_node.env import InsertionEnv
 
 SETS = dict(stiffness_axial="none", flow_init="identity", gains="learned", exploration="params",

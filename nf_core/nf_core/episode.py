@@ -21,7 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .reward import REWARD_TERMS, RewardWeights, gaussian_log_prob, reward_terms
+from .action_noise import draw_noise, gaussian_log_prob
+from .reward import REWARD_TERMS, RewardWeights, reward_terms
 
 MAX_EPISODE_SECONDS = 3600.0  # s, the longest episode a goal may ask for
 MAX_TASK_DEPTH = 1.0  # m, |insertion depth| a task status may report (the fixtures are a few cm deep)
@@ -157,7 +158,7 @@ class EpisodeRun:
             return self._zero
         k, r = divmod(j, self.P)
         if r == 0:
-            self.eps[k] = self.spec.sigma * self._rng.standard_normal(self.d)
+            self.eps[k] = draw_noise(self._rng, self.spec.sigma)
         return self.eps[k]
 
     def record(self, x: np.ndarray, xdot: np.ndarray, u_mean: np.ndarray | None, depth: float,

@@ -1,4 +1,4 @@
-"""The task reward and the Gaussian log-density of the policy noise. ROS-free, no torch.
+"""The task reward. ROS-free, no torch.
 
 Shared by the in-process rollouts (``learner_node.rollout``) and the controller node, which
 computes the same numbers when it streams a rollout over ROS. Reward of one decision, from the
@@ -10,13 +10,13 @@ state at the end of its period (DESIGN section 2)::
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 REWARD_TERMS = ("distance", "log_distance", "velocity", "action")
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 @dataclass(frozen=True)
@@ -33,7 +33,12 @@ class RewardWeights:
     def from_config(cls, cfg: Any) -> RewardWeights:
         """The weights of anything with ``reward_w``, ``reward_v``, ``reward_a``, ``reward_velocity``,
         ``reward_action`` attributes (a ``TrainConfig``)."""
-        return cls(cfg.reward_w, cfg.reward_v, cfg.reward_a, cfg.reward_velocity, cfg.reward_action)
+        return cls(*(getattr(cfg, f"reward_{name}") for name in REWARD_PARAMETERS))
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any]) -> RewardWeights:
+        """The weights of a node's parameters (keys ``reward_w``, ..., ``reward_action``)."""
+        return cls(*(params[f"reward_{name}"] for name in REWARD_PARAMETERS))
 
     def check(self) -> None:
         """Raise ``ValueError`` for negative weights or a non-positive offset."""
@@ -42,6 +47,23 @@ class RewardWeights:
                 raise ValueError(f"reward weight {name} must be >= 0, got {getattr(self, name)}")
         if not self.a > 0.0:
             raise ValueError(f"reward offset a must be > 0, got {self.a}")
+
+
+# The weights as node parameters and config fields (``reward_<field>``): the one place their
+# defaults and meanings are written.
+REWARD_PARAMETERS = {
+    "w": "reward: weight of |d|^2 (d in m)",
+    "v": "reward: weight of ln((|d|^2 + a) / a)",
+    "a": "reward: offset a of the log-distance term, m^2 (sets where it saturates, ~3 mm)",
+    "velocity": "reward: weight of the squared TCP speed |xdot|^2 (m/s)",
+    "action": "reward: weight of the squared action force |u|^2 (N)",
+}
+DEFAULT_WEIGHTS = RewardWeights()
+
+
+def reward_parameter_defaults() -> dict[str, tuple[float, str]]:
+    """``reward_<field>`` -> (default, description), for a node's parameter table."""
+    return {f"reward_{name}": (getattr(DEFAULT_WEIGHTS, name), doc) for name, doc in REWARD_PARAMETERS.items()}
 
 
 def reward_terms(d: np.ndarray, xdot: np.ndarray, action: np.ndarray, weights: RewardWeights) -> dict[str, np.ndarray]:
@@ -53,9 +75,3 @@ def reward_terms(d: np.ndarray, xdot: np.ndarray, action: np.ndarray, weights: R
         "velocity": -weights.velocity * np.sum(np.square(xdot), axis=-1),
         "action": -weights.action * np.sum(np.square(action), axis=-1),
     }
-
-
-def gaussian_log_prob(noise: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """log N(noise; 0, diag sigma^2) summed over the last axis."""
-    z = noise / sigma
-    return np.sum(-0.5 * z * z - np.log(sigma) - 0.5 * _LOG_2PI, axis=-1)

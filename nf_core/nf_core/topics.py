@@ -19,11 +19,6 @@ POLICY_PARAMETERS = "/policy_parameters"  # nf_msgs/PolicyParameters, one learne
 DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray
 ROLLOUTS = "rollouts"  # nf_msgs/RolloutChunk, controller -> learner
 
-# History kept by the publishers of the 1 kHz topics (reliable, keep last). ros2_control uses 10,
-# but a reliable writer drops the oldest samples for a reader that is more than this many behind,
-# and a recorder on a busy 2-core machine can be off the CPU for tens of ms. 1000 samples (about
-# 1 s) cost memory only: a keep-last writer never blocks.
-PUBLISH_DEPTH = 1000
 RUN_EPISODE = "run_episode"  # nf_msgs/action/RunEpisode, served by the controller
 SIM_RESET = "sim_bridge/reset"  # nf_msgs/srv/ResetSim, served by the sim bridge
 

@@ -10,12 +10,20 @@ parameter ``rt_priority`` (the Franka driver, and the MuJoCo bridge composed in 
 
 A thread inherits its creator's policy, so the loop thread is the one that calls ``apply``, and
 ``apply(0)`` also takes back a FIFO priority the thread inherited.
+
+libfranka's ``Robot`` constructor puts its *calling* thread at SCHED_FIFO 99 whenever the system
+allows it (``RealtimeConfig.kIgnore`` too), and every thread or process started from it inherits
+that: ``open_robot`` gives the caller its scheduling back, so only the loop thread runs at FIFO.
 """
 
 from __future__ import annotations
 
 import os
 import threading
+from collections.abc import Callable
+from typing import TypeVar
+
+T = TypeVar("T")
 
 AUTO = -1
 
@@ -91,3 +99,13 @@ def check_priority_allowed(priority: int, loop: str = "the torque loop") -> str:
     return (f"cannot run {loop} at SCHED_FIFO priority {priority} ({error[0]}): give this user an "
             f"'rtprio' limit of at least {priority} (/etc/security/limits.conf; Franka's Linux setup guide does "
             f"this for its realtime group), or set rt_priority:=0 for normal scheduling")
+
+
+def open_robot(make: Callable[[], T]) -> T:
+    """``make()`` (libfranka's ``Robot(...)``), then the calling thread's scheduling as it was before:
+    the constructor's SCHED_FIFO 99 stays off the executor thread and everything started from it."""
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        return make()
+    finally:
+        os.sched_setscheduler(0, policy, param)
