@@ -8,7 +8,7 @@ over repeats, each on a fresh policy. Also one forward+backward of ``log_prob`` 
 Iteration (the issue's measures, "NF-PPO wall time per training iteration <= 1.2x MLP-PPO and no
 slower than stable-baselines3's PPO"): ``Trainer.train_iteration`` on the gear task (config/gear.yaml:
 simulated rollouts + update) for NF-PPO and MLP-PPO, and one ``learn`` call of stable-baselines3's
-PPO on the same task through ``learner_node.gym_env`` (one rollout of the same batch, rollouts_per_iter
+PPO on the same task through ``learner_node.analysis.gym_env`` (one rollout of the same batch, rollouts_per_iter
 x decisions per episode, + its update with the config's epochs, minibatch, lr, gamma, lambda, clip),
 as an outside reference. One warm-up iteration each, then ``--repeats`` iterations of the three in
 turn (interleaved, so load drift on the shared machine hits all alike); medians. stable-baselines3
@@ -150,7 +150,7 @@ def sb3_iteration(rollouts: int) -> tuple[Callable[[], dict[str, float]], dict[s
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
 
-    from learner_node.gym_env import InsertionGymEnv
+    from learner_node.analysis.gym_env import InsertionGymEnv
 
     cfg = gear_config("mlp", rollouts)
     n_steps = rollouts * cfg.decisions_per_episode
@@ -193,7 +193,7 @@ def sb3_iteration(rollouts: int) -> tuple[Callable[[], dict[str, float]], dict[s
 
     info = {"version": stable_baselines3.__version__, "policy": "MlpPolicy", "dtype": "float32",
             "net_arch": policy_kwargs["net_arch"], "activation": cfg.mlp_activation, "n_envs": 1,
-            "env": "learner_node.gym_env.InsertionGymEnv (gear, force held per decision period)",
+            "env": "learner_node.analysis.gym_env.InsertionGymEnv (gear, force held per decision period)",
             **settings, "max_grad_norm": settings["max_grad_norm"] if cfg.max_grad_norm > 0 else None,
             "torch_threads": torch.get_num_threads()}
     return run, info

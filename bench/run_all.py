@@ -116,7 +116,7 @@ def main() -> int:
     RESULTS.mkdir(exist_ok=True)
     calls = ["--calls", "20000", "--autograd-calls", "300"] if args.quick else []
     failed = []
-    ctrl = _run("controller_step", [sys.executable, "-m", "nf_controller_node.bench", *calls,
+    ctrl = _run("controller_step", [sys.executable, str(HERE / "bench_controller.py"), *calls,
                                     "--out", str(RESULTS / "controller_step.json")])
     if ctrl is None:
         failed.append("controller_step")

@@ -23,11 +23,12 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "flow_selfcheck = learner_node.selfcheck:main",
+            "flow_selfcheck = learner_node.analysis.selfcheck:main",
             "train = learner_node.train_cli:main",
             "learner = learner_node.node:main",
-            "nf_report = learner_node.report:main",
-            "nf_compare = learner_node.compare:main",
+            "nf_report = learner_node.analysis.report:main",
+            "nf_compare = learner_node.analysis.compare:main",
+            "deploy_policy = learner_node.deploy:main",
         ],
     },
 )

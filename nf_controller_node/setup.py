@@ -23,7 +23,6 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "controller_bench = nf_controller_node.bench:main",
             "nf_controller = nf_controller_node.node:main",
         ],
     },

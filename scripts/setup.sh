@@ -70,9 +70,19 @@ if [ "$(cat ros2_ws/.build.sha256 2>/dev/null)" != "$SRC_HASH" ] || [ ! -f ros2_
     cd ros2_ws
     export AMENT_PREFIX_PATH="$VENV" CMAKE_PREFIX_PATH="$VENV" PATH="$VENV/bin:$PATH"
     unset PYTHONPATH
+    # a file the last build installed and this one does not (a moved module, a dropped console script)
+    # would linger in install/ and shadow its new home: the packages' install records tell which
+    for pkg in $PY_PKGS; do [ ! -f "build/$pkg/install.log" ] || cp "build/$pkg/install.log" "build/$pkg/install.log.last"; done
     "$VENV/bin/colcon" --log-base log build --event-handlers console_cohesion- status- \
       --cmake-args -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF >build.log 2>&1 \
       || { tail -40 build.log; fail "colcon build failed (full log: ros2_ws/build.log)"; }
+    for pkg in $PY_PKGS; do
+      [ -f "build/$pkg/install.log.last" ] || continue
+      comm -23 <(sort "build/$pkg/install.log.last") <(sort "build/$pkg/install.log") | while read -r stale; do
+        case "$stale" in "$PWD/install/$pkg/"*) rm -f "$stale" ;; esac
+      done
+      rm -f "build/$pkg/install.log.last"
+    done
   )
   echo "$SRC_HASH" > ros2_ws/.build.sha256
 else
@@ -86,7 +96,7 @@ source "$VENV/bin/activate"
 export AMENT_PREFIX_PATH="$VENV\${AMENT_PREFIX_PATH:+:\$AMENT_PREFIX_PATH}"
 source "$ROOT/ros2_ws/install/setup.bash"
 export PYTHONPATH="$ROOT/bags\${PYTHONPATH:+:\$PYTHONPATH}"  # nf_bags (plain Python, not a colcon package)
-# console scripts (train, nf_report, run_stack, render_scene, controller_bench, ...) live in lib/<package>
+# console scripts (train, nf_report, run_stack, render_scene, deploy_policy, ...) live in lib/<package>
 export PATH="$(for pkg in $PY_PKGS; do printf '%s:' "$ROOT/ros2_ws/install/$pkg/lib/$pkg"; done)\$PATH"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export MUJOCO_GL=osmesa PYOPENGL_PLATFORM=osmesa

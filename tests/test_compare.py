@@ -8,8 +8,8 @@ import json
 import pytest
 import torch
 
-from learner_node.compare import main as compare_main
-from learner_node.compare import run_folders, summarize
+from learner_node.analysis.compare import main as compare_main
+from learner_node.analysis.compare import run_folders, summarize
 from learner_node.config import TrainConfig
 from learner_node.trainer import Trainer
 

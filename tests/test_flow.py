@@ -14,9 +14,9 @@ import pytest
 import torch
 from torch.distributions import Normal
 
+from learner_node.analysis.selfcheck import main as selfcheck_main
 from learner_node.flow import RealNVPFlow, init_flow_weights
 from learner_node.policy import NFPolicy
-from learner_node.selfcheck import main as selfcheck_main
 from nf_controller_node import flow_eval
 from nf_controller_node.flow_eval import FlowEvaluator, pack
 from nf_core.flow_spec import ACTIVATIONS, FlowArchitecture

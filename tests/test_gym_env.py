@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from learner_node.analysis.decision_env import DecisionEnv, ZeroForce
 from learner_node.config import TrainConfig
-from learner_node.decision_env import DecisionEnv, ZeroForce
 from learner_node.rollout import EpisodeRecord, RolloutRunner
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -72,7 +72,7 @@ def test_gym_env_replays_the_rollout_and_passes_the_checker():
     pytest.importorskip("gymnasium", reason="gymnasium is a bench-only dependency (requirements/bench.txt)")
     from gymnasium.utils.env_checker import check_env
 
-    from learner_node.gym_env import InsertionGymEnv
+    from learner_node.analysis.gym_env import InsertionGymEnv
 
     cfg = short_config("gear")
     env = InsertionGymEnv(cfg)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
+from learner_node.analysis.exploration_stability import measure, summarize
 from learner_node.config import TrainConfig
-from learner_node.exploration_stability import measure, summarize
 from learner_node.param_explore import ParamExploration, make_param_optimizer, paired_advantages, param_ppo_update
 from learner_node.policy import NFPolicy
 from learner_node.trainer import CHECKPOINT, Trainer

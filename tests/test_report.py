@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from learner_node import report
-from learner_node.plots import plot_final_distance_distribution, plot_learning_curves
+from learner_node.analysis import report
+from learner_node.analysis.plots import plot_final_distance_distribution, plot_learning_curves
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -47,8 +47,8 @@ def test_plots_write_png(tmp_path) -> None:
 
 
 def test_energy_landscape_png(tmp_path) -> None:
+    from learner_node.analysis.plots import plot_energy_landscape
     from learner_node.config import TrainConfig
-    from learner_node.plots import plot_energy_landscape
     from learner_node.trainer import build_policy
 
     cfg = TrainConfig(task="block")

@@ -35,7 +35,7 @@ GAINS = ("fixed", "learned")
 EXPLORATIONS = ("action", "params")
 PHYSICS_DT = 0.001  # s, the simulator's (and controller's) step
 
-# Paper settings per task (DESIGN section 2); used for the fields left at None.
+# Paper settings per task (Khader et al., ICRA 2021); used for the fields left at None.
 TASK_DEFAULTS: dict[str, dict[str, float | int]] = {
     "gear": {"episode_seconds": 5.0, "sigma_init": 5.0, "n_flow": 1, "n_hidden": 16, "stiffness": 4.0, "damping": 1.0},
     "peg": {"episode_seconds": 5.0, "sigma_init": 1.0, "n_flow": 2, "n_hidden": 16, "stiffness": 1.0, "damping": 1.0},

@@ -3,7 +3,7 @@
 Each episode runs ``decisions_per_episode`` RL decisions of ``steps_per_decision`` 1 ms physics
 steps. At the start of decision k the policy noise eps_k ~ N(0, sigma^2) is drawn once and held
 for the whole period, while the deterministic part u_mean(x, xdot) (the flow controller, or the
-MLP) is re-evaluated every millisecond by the fast evaluator (DESIGN section 4). For PPO the
+MLP) is re-evaluated every millisecond by the fast evaluator. For PPO the
 action of decision k is a_k = u_mean(x_k, xdot_k) + eps_k at the decision's state; everything
 else that happens within the period is part of the environment.
 
@@ -11,7 +11,7 @@ Arm tasks: ``FlowController`` maps the force to joint torques (Jacobian transpos
 compensation, orientation impedance, limits). Block task (no arm): the force is applied to the
 block directly, plus the simulator's bias force (gravity compensation).
 
-Reward of decision k (DESIGN section 2), from the state at the end of the period::
+Reward of decision k (``nf_core.reward``), from the state at the end of the period::
 
     r = -w |d|^2 - v ln((|d|^2 + a) / a) - c_v |xdot|^2 - c_u |a_k|^2,   d = x - x_goal
 

@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     trainer.run(evaluate=not args.no_eval, evaluate_prior=not args.no_prior_eval)
     if trainer.history:
-        from .plots import evaluation_points, plot_learning_curves
+        from .analysis.plots import evaluation_points, plot_learning_curves
 
         title = f"{cfg.policy}-PPO on {cfg.task}, sigma_init {cfg.sigma_init:g}, seed {cfg.seed}"
         path = plot_learning_curves([trainer.history], args.out / "learning_curves.png", title, label="this run",

@@ -62,7 +62,7 @@ def plot_curves(metrics_path: Path, out: Path, title: str) -> bool:
     rows = json.loads(metrics_path.read_text()) if metrics_path.exists() else []
     if not rows:
         return False
-    from learner_node.plots import evaluation_points, plot_learning_curves
+    from learner_node.analysis.plots import evaluation_points, plot_learning_curves
 
     plot_learning_curves([rows], out, title, label="this run (training rollouts)",
                          evaluations=evaluation_points(learner_evaluations(metrics_path.parent)))
@@ -102,7 +102,7 @@ def final_video(run_dir: Path) -> Path | None:
     trainer.load_state_dict(state)
     params = trainer.policy.to_params(version=trainer.iteration)
     out = run_dir / "final_policy.gif"
-    from learner_node.video import render_policy_gif
+    from learner_node.analysis.video import render_policy_gif
 
     info = render_policy_gif(params, cfg.task, out, start_seed=trainer.runner.start_seed(EVAL_SEED_BASE),
                              seconds=cfg.episode_seconds)

@@ -3,7 +3,9 @@
 One step = ``FlowController.step``: the arm's kinematics (TCP pose, Jacobian, gravity) + flow phi
 and Jacobian + controller law + joint torque law with limits, one compiled call. The autograd step
 does the same with the arm model's update, phi's Jacobian from ``torch.func.jacrev`` instead of the
-compiled analytic evaluator, and the compiled torque law. Console script: controller_bench.
+compiled analytic evaluator, and the compiled torque law. Writes JSON (``--out``) and prints it.
+
+    python bench/bench_controller.py [--calls N] [--autograd-calls N] [--out FILE]
 """
 
 from __future__ import annotations
@@ -17,13 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
+from nf_controller_node.arm_model import ArmModel
+from nf_controller_node.controller import FlowController
+from nf_controller_node.flow_eval import FlowEvaluator
+from nf_controller_node.torque_law import task_space_torque
 from nf_core.flow_spec import FlowArchitecture
 from nf_core.policy_params import PolicyParameters
-
-from .arm_model import ArmModel
-from .controller import FlowController
-from .flow_eval import FlowEvaluator
-from .torque_law import task_space_torque
 
 Q_HOME = np.array([0.0, -0.12, 0.0, -2.26, 0.0, 2.14, 0.785])
 

@@ -19,8 +19,8 @@ import torch
 from nf_controller_node.flow_eval import FlowEvaluator
 from nf_core.flow_spec import ACTIVATIONS, FlowArchitecture
 
-from .flow import init_flow_weights
-from .policy import NFPolicy
+from ..flow import init_flow_weights
+from ..policy import NFPolicy
 
 TOLERANCE = 1e-9
 

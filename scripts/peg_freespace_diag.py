@@ -1,4 +1,4 @@
-"""Peg seed 1 (final policy), re-run of learner_node.report's free-space check from start 1000000004
+"""Peg seed 1 (final policy), re-run of learner_node.analysis.report's free-space check from start 1000000004
 (EVAL_SEED_BASE + 4): where the arm ends, its joints against the Panda's limits and its torques.
 Run from the repository root after the runs of docs/results/peg_learned (needs runs/learn_peg)."""
 import numpy as np
@@ -18,7 +18,7 @@ START = 4  # the report's 5th free-space start
 trainer = Trainer(TrainConfig.from_sources("config/peg.yaml", SETS))
 trainer.load_checkpoint("runs/learn_peg/peg/nf-sigma1-seed1/checkpoint.pt")
 policy = trainer.policy
-env = InsertionEnv("free")  # as in learner_node.report.freespace_check: the free scene's hand holds the gear
+env = InsertionEnv("free")  # as in learner_node.analysis.report.freespace_check: the free scene's hand holds the gear
 ctrl = FlowController(ArmModel(part=panda_spec.GEAR_PART), make_evaluator(policy))
 x_ref = policy.x_ref.detach().numpy().copy()
 

@@ -30,8 +30,8 @@ import numpy as np
 from nf_controller_node.controller import FlowController
 from nf_core.episode import EpisodeRun
 
-from .config import TrainConfig
-from .rollout import BLOCK_AXES, RolloutRunner
+from ..config import TrainConfig
+from ..rollout import BLOCK_AXES, RolloutRunner
 
 
 class ZeroForce:

@@ -39,10 +39,10 @@ from nf_controller_node.torque_law import CLAMPED, RATE_LIMITED
 from nf_core import panda_spec
 from sim_bridge_node.env import InsertionEnv
 
-from .config import PHYSICS_DT, TrainConfig
-from .param_explore import ParamExploration
-from .policy import NFPolicy
-from .trainer import EVAL_SEED_BASE, build_policy
+from ..config import PHYSICS_DT, TrainConfig
+from ..param_explore import ParamExploration
+from ..policy import NFPolicy
+from ..trainer import EVAL_SEED_BASE, build_policy
 
 SCHEMES = ("none", "action", "params")
 DEFAULT_TOLERANCE = 1e-6  # J: the controller's LyapunovMonitor's per-step integration tolerance

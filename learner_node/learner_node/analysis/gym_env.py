@@ -15,9 +15,9 @@ from typing import Any, ClassVar
 import gymnasium
 import numpy as np
 
-from .config import TrainConfig
+from ..config import TrainConfig
+from ..trainer import EVAL_SEED_BASE
 from .decision_env import DecisionEnv
-from .trainer import EVAL_SEED_BASE
 
 FORCE_LIMIT = 100.0  # N per axis; at the Panda's ~0.9 m reach that is its 87 Nm joint torque limit
 

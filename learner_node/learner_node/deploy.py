@@ -26,11 +26,11 @@ from nf_core.policy_params import PolicyParameters
 
 
 def load_checkpoint_policy(path: str | Path) -> tuple[PolicyParameters, int]:
-    """(the checkpoint's policy as PolicyParameters, its iteration). Needs torch (learner_node)."""
-    import torch
+    """(the checkpoint's policy as PolicyParameters, its iteration)."""
+    import torch  # here, not at the top: --help answers without loading torch
 
-    from learner_node.config import TrainConfig
-    from learner_node.trainer import build_policy
+    from .config import TrainConfig
+    from .trainer import build_policy
 
     state = torch.load(Path(path), weights_only=True)
     cfg = TrainConfig(**TrainConfig.with_defaults(state["config"]))

@@ -1,0 +1,1 @@
+"""The learner's analysis tools: sweep reports, plots, comparisons, videos, self-checks and the Gymnasium view."""
