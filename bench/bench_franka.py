@@ -21,48 +21,43 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import logging
 import os
 import platform
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
+import sources  # noqa: F401  (the package sources first on sys.path)
 
-HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE.parent / p) for p in ("nf_core", "nf_controller_node", "franka_driver")]
-
-from franka_driver.loop import DriverConfig, FrankaDriverLoop, summary_us  # noqa: E402
-from franka_driver.robot_model import identify  # noqa: E402
-from franka_driver.simulator import HOST, FrankySim  # noqa: E402
-from nf_controller_node.control_loop import ControlLoop, LoopConfig  # noqa: E402
-from nf_controller_node.host import ControllerHost  # noqa: E402
-from nf_controller_node.torque_law import TorqueLawConfig  # noqa: E402
-from nf_core import panda_spec  # noqa: E402
-from nf_core.flow_spec import FlowArchitecture  # noqa: E402
-from nf_core.policy_params import PolicyParameters  # noqa: E402
-from nf_core.thread_priority import (  # noqa: E402
-    AUTO,
-    apply,
-    check_priority_allowed,
-    current_thread_policy,
-    open_robot,
-    resolve_priority,
-)
+from franka_driver.loop import DriverConfig, FrankaDriverLoop
+from franka_driver.robot_model import identify
+from nf_bringup.testing.franky import HOST, FrankySim
+from nf_controller_node.control_loop import ControlLoop, LoopConfig
+from nf_controller_node.host import ControllerHost
+from nf_controller_node.torque_law import TorqueLawConfig
+from nf_core import panda_spec
+from nf_core.driver_loop import loop_priority
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.policy_params import PolicyParameters
+from nf_core.thread_priority import AUTO, open_robot
+from nf_core.tick_timing import latency_summary
 
 TARGETS = {"exceptions": 0, "p99_us_max": 150.0, "p999_us_max": 300.0, "late_run_below": 3}
+
+HERE = Path(__file__).resolve().parent
 
 
 def run(seconds: float, log_dir: Path, rt_priority: int = AUTO) -> dict:
     """Drive the simulated FR3 for ``seconds`` of wall time, the loop thread scheduled as the driver's
     with ``realtime: ignore`` and ``rt_priority`` (auto: SCHED_FIFO 99 if allowed; 0: normal); the
     measurements."""
-    rt_priority, required = resolve_priority(rt_priority, realtime_enforced=False)
-    refused = check_priority_allowed(rt_priority) if required else ""
-    if refused:
-        raise SystemExit(refused)
+    try:
+        rt_priority = loop_priority(rt_priority, realtime_enforced=False, loop="the torque loop")
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
     import pylibfranka as franka
 
     with FrankySim(log_dir / "franky-sim.log"):
@@ -83,31 +78,20 @@ def run(seconds: float, log_dir: Path, rt_priority: int = AUTO) -> dict:
         errors = (franka.FrankaException, franka.ControlException, franka.CommandException,
                   franka.NetworkException, franka.RealtimeException, franka.InvalidOperationException)
         driver = FrankaDriverLoop(robot, host, tcp_arm.tcp_position, DriverConfig(keep_timing=True),
-                                  franka.Torques, errors)
-        stop = threading.Event()
-        scheduling: list[str] = []
-
-        def loop_thread() -> None:  # as the driver node's thread: the priority first, then the loop
-            apply(rt_priority)
-            policy, priority = current_thread_policy()
-            scheduling.append(f"{policy} {priority}")
-            driver.run(stop)
-
-        thread = threading.Thread(target=loop_thread, daemon=True)
+                                  franka.Torques, errors, rt_priority=rt_priority)  # scheduled as the node's
         sys.setswitchinterval(1e-4)
         gc.collect()
         t0 = time.monotonic()
-        thread.start()
+        driver.start(logging.getLogger("bench_franka"))
         time.sleep(seconds)
-        stop.set()
-        thread.join(10.0)
+        driver.stop(10.0)
         wall = time.monotonic() - t0
         drift = float(np.linalg.norm(driver.x - x0))
         del robot, driver.robot
     t = driver.timing
-    lat, per = summary_us(t.latency), summary_us(t.periods)
+    lat, per = latency_summary(t.latency), latency_summary(t.periods)
     return {"seconds": seconds, "wall_s": wall, "arm": spec.kind,
-            "loop_scheduling": scheduling[0] if scheduling else "", "latency": lat, "period": per,
+            "loop_scheduling": driver.scheduling, "latency": lat, "period": per,
             **t.counters(), "late_fraction": t.late / max(t.ticks, 1), "exceptions": driver.exceptions,
             "last_error": driver.last_error, "fault": loop.fault, "tcp_drift_mm": drift * 1e3,
             "ticks_per_s": t.ticks / max(wall, 1e-9)}

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import platform
 import statistics
@@ -29,6 +30,10 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import sources  # noqa: F401  (the package sources first on sys.path)
+
+from nf_bringup.processes import RosProcess, allocate_domain_id, ros_env
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -42,7 +47,6 @@ def ros_iteration(rollouts: int, seconds: float, domain: int, workdir: Path, com
     """One PPO iteration over ROS; returns the learner's metrics row. ``monitor_period`` overrides
     the composed sim's (s between its joint_states and applied-command messages; 0: every step);
     ``monitor_always``: the composed sim publishes its monitoring topics with no subscriber too."""
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     params = ["--ros-args", "--params-file", str(config)]
     lockstep = ["-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0"]
     if monitor_period is not None:
@@ -51,25 +55,20 @@ def ros_iteration(rollouts: int, seconds: float, domain: int, workdir: Path, com
         lockstep += ["-p", "sim_bridge:monitor_always:=true"]
     arm = [("nf_bringup.sim_stack", lockstep)] if composed else \
         [("sim_bridge_node.node", []), ("nf_controller_node.node", lockstep)]
-    procs = [subprocess.Popen([sys.executable, "-m", mod, *params, *extra], env=env, stdout=subprocess.DEVNULL,
-                              stderr=subprocess.STDOUT) for mod, extra in arm]
+    procs = [RosProcess(["-m", mod, *params, *extra], domain) for mod, extra in arm]
     try:
         out = workdir / f"run{domain}"
         learner = subprocess.run(
             [sys.executable, "-m", "learner_node.node", *params, "-p", f"learner_node:out_dir:={out}",
              "-p", "learner_node:iterations:=1", "-p", f"learner_node:rollouts_per_iter:={rollouts}",
              "-p", "learner_node:eval_episodes:=0", "-p", f"episode_seconds:={seconds}"],
-            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, timeout=900)
+            env=ros_env(domain), stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, timeout=900)
         if learner.returncode != 0:
             raise RuntimeError(f"learner exited with {learner.returncode}")
         return json.loads((out / "metrics.json").read_text())[-1]
     finally:
-        for p in procs:  # stopped by PID
-            p.send_signal(2)
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        for p in procs:
+            p.stop(10.0)
 
 
 def in_process_iteration(rollouts: int, seconds: float, config: Path = CONFIG) -> dict:
@@ -107,8 +106,6 @@ def loop_alone(rollouts: int, seconds: float, config: Path = CONFIG) -> list[flo
     """Steps/s of each episode of the composed driver loop with no ROS at all (``SimDriverLoop`` +
     ``ControllerHost`` on a thread, episodes started and drained by hand): the ceiling of the
     composed stack, what ROS's slow side and publishing take from it."""
-    import threading
-
     from nf_controller_node.host import EPISODE_END
     from nf_core.episode import EpisodeRun, EpisodeSpec
     from sim_bridge_node.bridge import SimBridge
@@ -117,9 +114,7 @@ def loop_alone(rollouts: int, seconds: float, config: Path = CONFIG) -> list[flo
     cfg, env, host = gear_host(config, "pause", {"rollouts_per_iter": rollouts, "episode_seconds": seconds})
     params = host.loop.policy
     driver = SimDriverLoop(SimBridge(env), host, realtime=False)
-    stop = threading.Event()
-    thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)
-    thread.start()
+    driver.start(logging.getLogger("bench_stack"))
     rates = []
     try:
         for i in range(rollouts):
@@ -131,8 +126,7 @@ def loop_alone(rollouts: int, seconds: float, config: Path = CONFIG) -> list[flo
                 time.sleep(0.001)
             rates.append(run.steps / (time.perf_counter() - t0))
     finally:
-        stop.set()
-        thread.join(10.0)
+        driver.stop(10.0)
     return rates
 
 
@@ -158,9 +152,7 @@ def loop_alone_iteration(rollouts: int, seconds: float, config: Path = CONFIG) -
     driver = SimDriverLoop(SimBridge(env), host, realtime=False)
     woken = threading.Event()
     host.notify = woken.set
-    stop = threading.Event()
-    thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)
-    thread.start()
+    driver.start(logging.getLogger("bench_stack"))
     steps = 0
     try:
         t0 = time.perf_counter()
@@ -179,8 +171,7 @@ def loop_alone_iteration(rollouts: int, seconds: float, config: Path = CONFIG) -
             steps += run.steps
         wall = time.perf_counter() - t0
     finally:
-        stop.set()
-        thread.join(10.0)
+        driver.stop(10.0)
     return {"rollout_seconds": wall, "steps": steps}
 
 
@@ -209,7 +200,7 @@ def main() -> int:
             # (the pairwise ratios compare runs seconds apart); the slow two-process run last
             def monitored(k: int = k) -> dict:
                 """The composed iteration with the monitoring published to nobody (sim_bridge:monitor_always)."""
-                row = ros_iteration(rollouts, seconds, 150 + (os.getpid() + 2 * k + 7) % 50, Path(tmp), composed=True,
+                row = ros_iteration(rollouts, seconds, allocate_domain_id(), Path(tmp), composed=True,
                                     config=args.config, monitor_period=args.monitor_period, monitor_always=True)
                 print(f"over ROS, composed, monitoring always published {k + 1}/{repeats}: rollouts "
                       f"{row['rollout_seconds']:.2f} s ({steps / row['rollout_seconds']:.0f} steps/s)", flush=True)
@@ -217,8 +208,8 @@ def main() -> int:
 
             if args.monitoring_ab and k % 2 == 1:  # before the default composed iteration, or after: alternately
                 always.append(monitored())
-            for j, how in enumerate(rows):
-                row = ros_iteration(rollouts, seconds, 150 + (os.getpid() + 2 * k + j) % 50, Path(tmp),
+            for how in rows:
+                row = ros_iteration(rollouts, seconds, allocate_domain_id(), Path(tmp),
                                     composed=how == "composed", config=args.config,
                                     monitor_period=args.monitor_period)
                 rows[how].append(row)
@@ -238,9 +229,8 @@ def main() -> int:
                       f"({alone[-1]['steps'] / alone[-1]['rollout_seconds']:.0f} steps/s)", flush=True)
     floor = []
     for k in range(repeats):  # the runtime's floor: a bare rclpy round trip between two processes
-        env = dict(os.environ, ROS_DOMAIN_ID=str(150 + (os.getpid() + 7 + k) % 50),
-                   ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-        done = subprocess.run([sys.executable, str(HERE / "pingpong.py"), "--seconds", "5"], env=env,
+        done = subprocess.run([sys.executable, str(HERE / "pingpong.py"), "--seconds", "5"],
+                              env=ros_env(allocate_domain_id()),
                               capture_output=True, text=True, timeout=120)
         floor.append(json.loads(done.stdout.strip().splitlines()[-1]))
         print(f"rclpy ping-pong floor {k + 1}/{repeats}: {floor[-1]['round_trips_per_s']:.0f} round trips/s",

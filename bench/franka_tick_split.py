@@ -27,32 +27,31 @@ import argparse
 import gc
 import os
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 from tempfile import TemporaryDirectory
 
 import numpy as np
+import sources  # noqa: F401  (the package sources first on sys.path)
 
-HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE.parent / p) for p in ("nf_core", "nf_controller_node", "franka_driver")]
-
-from franka_driver.robot_model import identify  # noqa: E402
-from franka_driver.simulator import HOST, FrankySim  # noqa: E402
-from nf_controller_node.control_loop import ControlLoop, LoopConfig  # noqa: E402
-from nf_controller_node.host import ControllerHost  # noqa: E402
-from nf_controller_node.torque_law import TorqueLawConfig  # noqa: E402
-from nf_core import panda_spec  # noqa: E402
-from nf_core.flow_spec import FlowArchitecture  # noqa: E402
-from nf_core.policy_params import PolicyParameters  # noqa: E402
-from nf_core.thread_priority import (  # noqa: E402
+from franka_driver.robot_model import identify
+from nf_bringup.testing.franky import HOST, FrankySim
+from nf_controller_node.control_loop import ControlLoop, LoopConfig
+from nf_controller_node.host import ControllerHost
+from nf_controller_node.torque_law import TorqueLawConfig
+from nf_core import panda_spec
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.policy_params import PolicyParameters
+from nf_core.thread_priority import (
     AUTO,
     apply,
     current_thread_policy,
     open_robot,
     resolve_priority,
 )
+
+HERE = Path(__file__).resolve().parent
 
 
 def _pcts(values: np.ndarray) -> str:

@@ -1,4 +1,5 @@
-"""ament_python package franka_driver (entry points install to lib/franka_driver for ros2 run)."""
+"""ament_python package franka_driver: the Franka driver node and its torque loop (a library; the
+program that composes it with the controller, ``nf_franka_stack``, is nf_bringup's)."""
 
 from setuptools import find_packages, setup
 
@@ -18,11 +19,4 @@ setup(
     maintainer_email="maintainers@nf-control.dev",
     description=open("package.xml").read().split("<description>")[1].split("</description>")[0],
     license="Apache-2.0",
-    entry_points={
-        "console_scripts": [
-            "franka_driver = franka_driver.stack:main",
-            "nf_franka_stack = franka_driver.stack:main",
-            "deploy_policy = franka_driver.deploy:main",
-        ],
-    },
 )

@@ -24,6 +24,7 @@ setup(
     entry_points={
         "console_scripts": [
             "nf_sim_stack = nf_bringup.sim_stack:main",
+            "nf_franka_stack = nf_bringup.franka_stack:main",
             "run_stack = nf_bringup.stack:main",
         ],
     },

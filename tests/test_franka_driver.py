@@ -11,11 +11,12 @@ import pytest
 
 from franka_driver.loop import DriverConfig, reset_policy
 from franka_driver.robot_model import FR3, WrongRobotModelError, identify
+from nf_bringup.testing.franky import FrankySim
 from nf_core.episode import EpisodeRun, EpisodeSpec
 from nf_core.reward import RewardWeights
 from nf_core.thread_priority import open_robot
 
-from franky import DriverRig, FrankySim
+from franky import DriverRig
 
 pylibfranka = pytest.importorskip("pylibfranka")
 

@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 
 from franka_driver.loop import DriverConfig, reset_policy
+from nf_bringup.testing.franky import FrankySim
 from nf_controller_node.host import EPISODE_END
 from nf_core.episode import EpisodeRun, EpisodeSpec
 from nf_core.reward import RewardWeights
 
-from franky import DriverRig, FrankySim
+from franky import DriverRig
 
 pytest.importorskip("pylibfranka")
 
@@ -49,7 +50,7 @@ def test_robot_lost_mid_episode_aborts_it_latches_the_hold_and_keeps_the_error(t
         ends = [e for e in rig.host.drain() if e.kind == EPISODE_END]
         assert ends and ends[-1].text.startswith("aborted: libfranka error"), ends
         assert rig.loop.episode is None
-        assert rig._thread.is_alive()  # waiting for a recovery, not crashed
+        assert rig.driver.is_alive()  # waiting for a recovery, not crashed
     finally:
         if rig is not None:
             rig.stop()

@@ -4,7 +4,7 @@ episode asked for during the error), a policy whose x_ref is not the configured 
 
 from __future__ import annotations
 
-import threading
+import logging
 import time
 
 import numpy as np
@@ -112,9 +112,7 @@ def _wait(predicate: object, timeout: float = 20.0) -> bool:
 def test_reflex_mid_episode_aborts_it_latches_the_hold_and_waits_for_a_person():
     robot = FakeRobot(fail_at=400)
     driver, loop, host = _rig(robot)
-    stop = threading.Event()
-    thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)
-    thread.start()
+    driver.start(logging.getLogger("franka-loop"))
     try:
         driver.begin_episode(0, _episode(loop.policy.x_ref)).result(timeout=20)
         assert _wait(lambda: driver.in_error)
@@ -133,16 +131,13 @@ def test_reflex_mid_episode_aborts_it_latches_the_hold_and_waits_for_a_person():
         host.call(loop.clear_fault).result(timeout=5)
         driver.begin_episode(0, _episode(loop.policy.x_ref)).result(timeout=20)
     finally:
-        stop.set()
-        thread.join(5)
+        driver.stop()
 
 
 def test_automatic_recovery_goes_on_and_an_episode_asked_meanwhile_starts_after_it():
     robot = FakeRobot(fail_at=50)
     driver, loop, _host = _rig(robot, automatic_error_recovery=True, recovery_wait=0.3)
-    stop = threading.Event()
-    thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)
-    thread.start()
+    driver.start(logging.getLogger("franka-loop"))
     try:
         assert _wait(lambda: driver.in_error)
         assert not loop.fault  # automatic: no latch
@@ -150,23 +145,19 @@ def test_automatic_recovery_goes_on_and_an_episode_asked_meanwhile_starts_after_
         started.result(timeout=20)  # waited for the recovery, then reset and started
         assert robot.recoveries == 1 and robot.sessions == 2 and driver.resets_done == 1
     finally:
-        stop.set()
-        thread.join(5)
+        driver.stop()
 
 
 def test_an_episode_whose_policy_is_not_the_goal_is_refused():
     robot = FakeRobot()
     driver, loop, _host = _rig(robot, goal=np.array([0.4, 0.1, 0.2]))
-    stop = threading.Event()
-    thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)
-    thread.start()
+    driver.start(logging.getLogger("franka-loop"))
     try:
         with pytest.raises(RuntimeError, match="is not the goal parameter"):
             driver.begin_episode(0, _episode(loop.policy.x_ref)).result(timeout=20)
         assert loop.episode is None and driver.resets_done == 0
     finally:
-        stop.set()
-        thread.join(5)
+        driver.stop()
 
 
 def test_a_restarted_session_anchors_the_hold_where_the_arm_is_now():
@@ -176,9 +167,7 @@ def test_a_restarted_session_anchors_the_hold_where_the_arm_is_now():
     robot = FakeRobot(fail_at=100)
     driver, loop, host = _rig(robot)
     ctrl = loop.controller
-    stop = threading.Event()
-    thread = threading.Thread(target=driver.run, args=(stop,), daemon=True)
-    thread.start()
+    driver.start(logging.getLogger("franka-loop"))
     try:
         assert _wait(lambda: driver.in_error)
         before = host.call(lambda: ctrl.hold_anchor).result(timeout=5)
@@ -191,8 +180,7 @@ def test_a_restarted_session_anchors_the_hold_where_the_arm_is_now():
         np.testing.assert_allclose(after, moved, atol=1e-9)
         assert loop.fault.startswith("libfranka error")  # still held until clear_fault
     finally:
-        stop.set()
-        thread.join(5)
+        driver.stop()
 
 
 def test_fit_loop_gives_the_loop_the_fr3s_ranges_instead_of_the_pandas():

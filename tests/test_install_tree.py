@@ -13,7 +13,7 @@ from ros_testing import REPO, allocate_domain_id, ros_env
 INSTALL = REPO / "ros2_ws" / "install"
 # every ament_python package linked in the workspace (a new one is covered by these tests at once)
 PYTHON_PACKAGES = tuple(sorted(p.name for p in (REPO / "ros2_ws" / "src").iterdir() if (p / "setup.py").is_file()))
-# the ones with executables (nf_core is a library only)
+# the ones with executables (nf_core and franka_driver are libraries: nf_bringup composes the driver)
 NODE_PACKAGES = tuple(p for p in PYTHON_PACKAGES
                       if '"console_scripts"' in (REPO / "ros2_ws" / "src" / p / "setup.py").read_text())
 
@@ -38,8 +38,8 @@ def test_interfaces_are_indexed():
         assert name in listed, f"{name} missing from {index}"
 
 
-def test_only_the_core_is_a_library():
-    assert set(PYTHON_PACKAGES) - set(NODE_PACKAGES) == {"nf_core"}
+def test_only_the_core_and_the_franka_driver_are_libraries():
+    assert set(PYTHON_PACKAGES) - set(NODE_PACKAGES) == {"nf_core", "franka_driver"}
 
 
 @pytest.mark.parametrize("pkg", NODE_PACKAGES)
@@ -84,7 +84,7 @@ def test_env_file_puts_console_scripts_and_bags_on_the_path():
     """The README's commands (train, nf_report, render_scene, python -m nf_bags.*) work in a shell
     that sourced env.sh and nothing else."""
     script = f"source {REPO / 'env.sh'} && command -v train nf_report nf_compare run_stack render_scene " \
-             "controller_bench && python -c 'import nf_bags.record'"
+             "deploy_policy && python -c 'import nf_bags.record'"
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     env["PATH"] = "/usr/bin:/bin"
     done = subprocess.run(["bash", "-c", script], env=env, capture_output=True, text=True, timeout=120)

@@ -112,7 +112,7 @@ def test_the_driver_refuses_a_priority_it_cannot_have_before_connecting(extra, r
         prefix = _without_sys_nice()
         if prefix is None:
             pytest.skip("cannot take the realtime privilege away from a child process here")
-    args = ["-m", "franka_driver.stack", "--ros-args", "--params-file", str(REPO / "config" / "franka.yaml"),
+    args = ["-m", "nf_bringup.franka_stack", "--ros-args", "--params-file", str(REPO / "config" / "franka.yaml"),
             "-p", "franka_driver:robot_ip:=127.0.0.1", *extra]  # no robot there: the check comes first
     with RosProcess(args, allocate_domain_id(), tmp_path / "stack.log", prefix=prefix) as stack:
         stack.proc.wait(60.0)
@@ -126,7 +126,7 @@ def test_libfranka_raises_its_callers_priority_and_open_robot_gives_it_back(tmp_
     thread that called it at SCHED_FIFO 99 (the executor thread, and then every thread and process it
     starts); ``open_robot`` restores the caller's scheduling and the connection works as before."""
     pylibfranka = pytest.importorskip("pylibfranka")
-    from franky import HOST, FrankySim
+    from nf_bringup.testing.franky import HOST, FrankySim
 
     out: dict[str, object] = {}
 

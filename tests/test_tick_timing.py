@@ -2,7 +2,7 @@
 
 import pytest
 
-from nf_core.tick_timing import LONG_LATE_RUN, TickTiming
+from nf_core.tick_timing import LONG_LATE_RUN, TickTiming, latency_summary
 
 
 def feed(t: TickTiming, lateness: list[bool], start: float = 0.0, dt: float = 1e-3) -> float:
@@ -35,3 +35,17 @@ def test_without_keep_all_only_the_bounded_window_is_kept():
     assert len(t.latency) == 0 and len(t.periods) == 0
     assert len(t.take_window()) == 10 and t.take_window() == []
     assert t.counters() == {"ticks": 10, "late_ticks": 0, "longest_late_run": 0, "resyncs": 0, "missed_cycles": 0}
+
+
+def test_one_latency_summary_in_microseconds_for_lists_and_kept_arrays():
+    values = [1e-4] * 999 + [1e-3]
+    s = latency_summary(values)
+    assert list(s) == ["count", "p50_us", "p90_us", "p99_us", "p999_us", "max_us"]
+    assert s["count"] == 1000 and s["p50_us"] == pytest.approx(100.0) and s["max_us"] == pytest.approx(1000.0)
+    assert 100.0 <= s["p999_us"] <= 1000.0
+    t = TickTiming(keep_all=True)
+    for v in values:
+        t.tick(0.0, v, False)
+    assert latency_summary(t.latency) == s  # the kept array.array reads the same
+    assert latency_summary([]) == {"count": 0, "p50_us": 0.0, "p90_us": 0.0, "p99_us": 0.0, "p999_us": 0.0,
+                                   "max_us": 0.0}

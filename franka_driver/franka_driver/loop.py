@@ -1,6 +1,7 @@
 """libfranka's 1 kHz torque loop hosting the flow controller (``ControllerHost``). ROS-free.
 
-Per tick, on the driver thread::
+The robot's side of ``nf_core.driver_loop.DriverLoop`` (which owns the thread, its priority, the
+tick's order and timing, and the episode hand-over). Per tick, on the driver thread::
 
     host.service()                    # posted work (policy swaps, episode starts) in the slack
     state, _ = control.readOnce()     # blocks until the robot's next state
@@ -26,7 +27,6 @@ episode asked for meanwhile starts its reset motion once torque control is back.
 
 from __future__ import annotations
 
-import array
 import gc
 import math
 import threading
@@ -40,10 +40,11 @@ import numpy as np
 
 from nf_controller_node.flow_eval import FlowEvaluator
 from nf_controller_node.host import ControllerHost
+from nf_core.driver_loop import DriverLoop
 from nf_core.episode import EpisodeRun
 from nf_core.flow_spec import FlowArchitecture
 from nf_core.policy_params import PolicyParameters
-from nf_core.tick_timing import LATE_AFTER, TickTiming
+from nf_core.tick_timing import TickTiming
 
 GRAVITY_MARGIN = 0.5  # Nm kept free below a joint's limit on top of the robot's gravity torque
 
@@ -112,29 +113,34 @@ class _Reset:
         self.error = math.inf  # m, last distance to the start
 
 
-class FrankaDriverLoop:
-    """Runs libfranka's torque loop with a ``ControllerHost``; see the module docstring.
+class FrankaDriverLoop(DriverLoop):
+    """libfranka's side of ``nf_core.driver_loop.DriverLoop`` around a ``ControllerHost``: read,
+    write, the work after the write, reset motions, sessions and error recovery; see the module
+    docstring.
 
     ``robot``: a ``pylibfranka.Robot`` (or anything with ``start_torque_control``, ``read_once``,
     ``stop``, ``automatic_error_recovery``); ``tcp(q)``: the TCP position (m) for joint positions.
     ``after_tick(q, dq, tau, stamp_ns)`` runs after each write (keep it to a few microseconds).
+    ``rt_priority``: the loop thread's SCHED_FIFO priority when ``start`` runs it (0: normal).
     """
 
     def __init__(self, robot: Any, host: ControllerHost, tcp: Callable[[np.ndarray], np.ndarray],
                  config: DriverConfig, torque_factory: Callable[[list[float]], Any],
                  exceptions: tuple[type[BaseException], ...] = (RuntimeError,),
                  after_tick: Callable[[np.ndarray, np.ndarray, np.ndarray, int], None] | None = None,
-                 connect: Callable[[], Any] | None = None) -> None:
+                 connect: Callable[[], Any] | None = None, rt_priority: int = 0) -> None:
         config.check()
+        # a robot needs a command every cycle: every state is ticked, also while the controller idles
+        super().__init__(host, TickTiming(config.keep_timing), rt_priority, label="torque loop thread",
+                         thread_name="franka-driver", answer_every_state=True)
+        self.host: ControllerHost = host
         self.robot = robot
         self.connect = connect  # a new connection when the old one is broken (libfranka's network errors)
-        self.host = host
         self.tcp = tcp
         self.config = config
         self.torques = torque_factory
         self.franka_errors = exceptions
         self.after_tick = after_tick
-        self.timing = TickTiming(config.keep_timing)
         self.law = host.loop.controller.law
         self.base_limits = self.law.torque_limits.copy()
         self.exceptions = 0  # libfranka exceptions caught
@@ -152,13 +158,19 @@ class FrankaDriverLoop:
         self.resets_done = 0
         self.resets_failed = 0
         self.last_reset = ""  # outcome of the latest reset, for diagnostics
+        # the current session's (driver thread): libfranka's motion handle, the last state read
+        self._control: Any = None
+        self._rebase = False
+        self._duration: Any = None
+        self._q = self._dq = np.zeros(host.loop.n)
+        self._stamp_ns = 0
+        self._arm = host.loop.controller.arm
 
-    # ------------------------------------------------------------------ episodes (any thread)
-    def begin_episode(self, seed: int, run: EpisodeRun) -> Future:
+    # ------------------------------------------------------------------ episodes (DriverLoop.begin_episode)
+    def reset(self, seed: int, run: EpisodeRun, done: Future) -> Callable[[], None]:
         """Move to ``start_position`` with the stable controller, then start ``run`` (``seed`` is
-        unused: a robot starts where the reset motion brings it). The future is done when the
+        unused: a robot starts where the reset motion brings it); ``done`` is completed when the
         episode runs, or holds why the reset failed."""
-        done: Future = Future()
         params = reset_policy(self.config.start_position, self.config.reset_stiffness, self.config.reset_damping)
         evaluator = self.host.loop.prepare_policy(params)  # the slow part, on the caller's thread
 
@@ -188,15 +200,7 @@ class FrankaDriverLoop:
             loop.config.idle_mode = "policy"
             self._reset = reset
 
-        posted = self.host.call(start_reset)
-
-        def failed_to_start(f: Future) -> None:
-            exc = f.exception()
-            if exc is not None and not done.done():
-                done.set_exception(exc)
-
-        posted.add_done_callback(failed_to_start)
-        return done
+        return start_reset
 
     def _end_reset(self, problem: str) -> None:
         """Driver thread: restore the controller's policy; start the episode or fail the future."""
@@ -282,20 +286,30 @@ class FrankaDriverLoop:
                 return
 
     def _session(self, stop: threading.Event) -> None:
-        control = self.robot.start_torque_control()
+        self._control = self.robot.start_torque_control()
         try:
-            self._control(control, stop)
+            self._open_session()
+            self.ticks(stop)
+            # stop asked: finish the motion cleanly with a zero command
+            try:
+                self._control.readOnce()
+                last = self.torques([0.0] * self.host.loop.n)
+                last.motion_finished = True
+                self._control.writeOnce(last)
+            except self.franka_errors:
+                pass
         finally:
-            control = None  # libfranka's motion handle goes with the session
+            self._control = None  # libfranka's motion handle goes with the session
 
-    def _control(self, control: Any, stop: threading.Event) -> None:
-        host, loop = self.host, self.host.loop
+    def _open_session(self) -> None:
+        loop = self.host.loop
         ctrl = loop.controller
         self.sessions += 1
         self.in_error = False
         self.timing.restart()
         ctrl.reset_rate_limit(np.zeros(loop.n))  # the robot gets no torque from us before the first write
         ctrl.release_hold_anchor()  # the arm may have moved since the last session (a reflex, a person)
+        self._rebase = True  # first state of this session: keep the stamps increasing across reconnects
         deferred, self._deferred = self._deferred, None
         if deferred is not None:
             start, future = deferred
@@ -304,53 +318,48 @@ class FrankaDriverLoop:
             except Exception as exc:  # the episode's future says why
                 if not future.done():
                     future.set_exception(exc)
-        timing, cfg, tcp = self.timing, self.config, self.tcp
-        arm, limits, law_limits = ctrl.arm, self.base_limits, self.law.torque_limits
-        headroom = cfg.gravity_headroom
-        perf = time.perf_counter
-        make = self.torques
-        after = self.after_tick
-        rebase = True  # first state of this session: keep the stamps increasing across reconnects
-        while not stop.is_set():
-            host.service()
-            state, duration = control.readOnce()
-            read = perf()
-            q = np.array(state.q)
-            dq = np.array(state.dq)
-            stamp_ns = int(state.time.to_sec() * 1e9 + 0.5) + self._stamp_offset
-            if rebase:
-                rebase = False
-                if stamp_ns <= host.last_stamp_ns:
-                    self._stamp_offset += host.last_stamp_ns + 1_000_000 - stamp_ns
-                    stamp_ns = host.last_stamp_ns + 1_000_000
-            tau = host.tick(stamp_ns, q, dq, time.monotonic())
-            control.writeOnce(make(tau.tolist()))
-            latency = perf() - read
-            timing.tick(read, latency, late=latency > LATE_AFTER)  # late: the command missed the cycle
-            robot_dt = duration.to_sec()
-            if robot_dt > 0.0015:  # the robot's time since the previous read spans more than one cycle
-                timing.missed_cycles += int(round(robot_dt / 0.001)) - 1
-            # ---- after the write: the next state is ~1 ms away
-            if headroom:  # the robot adds g(q) to our command: keep |command + g| within the limit
-                np.subtract(limits, np.abs(arm.g), out=law_limits)
-                np.maximum(law_limits, GRAVITY_MARGIN, out=law_limits)
-                law_limits -= GRAVITY_MARGIN
-            x = tcp(q)
-            self.x = x
-            self.depth, self.success = self.task_of(x)
-            host.set_task(self.depth, self.success)
-            if self._reset is not None:
-                self._reset_progress(x, stamp_ns)
-            if after is not None:
-                after(q, dq, host.tau, stamp_ns)
-        # stop asked: finish the motion cleanly with a zero command
-        try:
-            state, _ = control.readOnce()
-            last = make([0.0] * loop.n)
-            last.motion_finished = True
-            control.writeOnce(last)
-        except self.franka_errors:
-            pass
+
+    # ------------------------------------------------------------------ the hardware side (DriverLoop.ticks)
+    def read(self) -> tuple[int, np.ndarray, np.ndarray, float]:
+        """libfranka's next state (blocks until it comes); the tick counts from its arrival."""
+        state, self._duration = self._control.readOnce()
+        read = time.perf_counter()
+        q = np.array(state.q)
+        dq = np.array(state.dq)
+        stamp_ns = int(state.time.to_sec() * 1e9 + 0.5) + self._stamp_offset
+        if self._rebase:
+            self._rebase = False
+            last = self.host.last_stamp_ns
+            if stamp_ns <= last:
+                self._stamp_offset += last + 1_000_000 - stamp_ns
+                stamp_ns = last + 1_000_000
+        self._q, self._dq, self._stamp_ns = q, dq, stamp_ns
+        return stamp_ns, q, dq, read
+
+    def write(self, tau: np.ndarray) -> None:
+        """The command; the robot adds its own gravity torque."""
+        self._control.writeOnce(self.torques(tau.tolist()))
+
+    def update(self) -> None:
+        """After the write (the next state is ~1 ms away): missed cycles, the gravity headroom of the
+        next command, the TCP, the task, the reset motion's progress, ``after_tick``."""
+        robot_dt = self._duration.to_sec()
+        if robot_dt > 0.0015:  # the robot's time since the previous read spans more than one cycle
+            self.timing.missed_cycles += int(round(robot_dt / 0.001)) - 1
+        q, stamp_ns = self._q, self._stamp_ns
+        if self.config.gravity_headroom:  # the robot adds g(q) to our command: keep |command + g| within the limit
+            law_limits = self.law.torque_limits
+            np.subtract(self.base_limits, np.abs(self._arm.g), out=law_limits)
+            np.maximum(law_limits, GRAVITY_MARGIN, out=law_limits)
+            law_limits -= GRAVITY_MARGIN
+        x = self.tcp(q)
+        self.x = x
+        self.depth, self.success = self.task_of(x)
+        self.host.set_task(self.depth, self.success)
+        if self._reset is not None:
+            self._reset_progress(x, stamp_ns)
+        if self.after_tick is not None:
+            self.after_tick(q, self._dq, self.host.tau, stamp_ns)
 
     def _on_franka_error(self, exc: BaseException) -> None:
         """A reflex or a lost connection: torque control has ended. Abort, latch the hold, keep why."""
@@ -412,12 +421,3 @@ class FrankaDriverLoop:
             self.last_error = f"reconnect failed: {type(exc).__name__}: {exc}"[:500]
         return True
 
-
-def summary_us(values: array.array | list[float]) -> dict[str, float]:
-    """count, p50/p99/p99.9/max of durations given in s, in microseconds."""
-    a = np.frombuffer(values, dtype=np.float64) if isinstance(values, array.array) else np.asarray(values, float)
-    if a.size == 0:
-        return {"count": 0, "p50_us": 0.0, "p99_us": 0.0, "p999_us": 0.0, "max_us": 0.0}
-    p50, p99, p999 = np.percentile(a, [50, 99, 99.9]) * 1e6
-    return {"count": int(a.size), "p50_us": float(p50), "p99_us": float(p99), "p999_us": float(p999),
-            "max_us": float(a.max() * 1e6)}

@@ -5,9 +5,10 @@ The node connects to the robot (``robot_ip``; ``realtime`` enforce | ignore; ``r
 torque loop thread's SCHED_FIFO priority, and libfranka's own raise of its caller's given back:
 ``nf_core.thread_priority``), identifies the arm
 against the robot's own dynamics model (``franka_driver.robot_model``), builds the controller's
-Pinocchio model of that arm, and runs ``franka_driver.loop.FrankaDriverLoop`` on a driver thread:
-per tick readOnce -> controller -> writeOnce. It is always composed with an ``nf_controller``
-node (``nf_franka_stack``), which serves the RunEpisode action, rollouts, status, policy and
+Pinocchio model of that arm, and runs ``franka_driver.loop.FrankaDriverLoop`` (an
+``nf_core.driver_loop.DriverLoop``) on its driver thread: per tick readOnce -> controller ->
+writeOnce. It is always composed with an ``nf_controller`` node (``nf_franka_stack`` in
+``nf_bringup``), which serves the RunEpisode action, rollouts, status, policy and
 clear_fault unchanged; this node adds:
 
 - ``joint_states`` (names as the connected robot's description: ``fr3_joint1..7`` or
@@ -23,7 +24,6 @@ clear_fault unchanged; this node adds:
 from __future__ import annotations
 
 import json
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -34,12 +34,14 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from nf_core import qos, topics
+from nf_core.driver_loop import loop_priority
 from nf_core.panda_spec import HELD_PART_NAMES, held_part_by_name
 from nf_core.ros_runtime import declare_read_only
 from nf_core.serialized_message import SerializedMessage
-from nf_core.thread_priority import AUTO, check_priority_allowed, enter_loop_thread, open_robot, resolve_priority
+from nf_core.thread_priority import AUTO, open_robot
+from nf_core.tick_timing import latency_summary
 
-from .loop import DriverConfig, FrankaDriverLoop, summary_us
+from .loop import DriverConfig, FrankaDriverLoop
 from .robot_model import ROBOT_KINDS, Identification, WrongRobotModelError, identify
 
 _D = DriverConfig()
@@ -109,11 +111,7 @@ class FrankaDriverNode(Node):
         self.params = p
         self.config = driver_config(p, keep_timing=bool(p["timing_log"]))
         # the loop thread's realtime priority: checked now, before any connection, never dropped silently
-        self.rt_priority, required = resolve_priority(p["rt_priority"], p["realtime"] == "enforce")
-        refused = check_priority_allowed(self.rt_priority) if required else ""
-        if refused:
-            raise ValueError(refused)
-        self.loop_scheduling = "not started"
+        self.rt_priority = loop_priority(p["rt_priority"], p["realtime"] == "enforce", "the torque loop")
         import pylibfranka as franka  # here, so that --help and parameter errors need no robot
 
         self.franka = franka
@@ -140,8 +138,6 @@ class FrankaDriverNode(Node):
         self.get_logger().info(f"connected to {p['robot_ip']}: {self.identification.summary()}; joints "
                                f"{self.joint_names}; robot mode {state.robot_mode}")
         self.driver: FrankaDriverLoop | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
         self._latest: tuple[Any, ...] | None = None  # (q, dq, tau copy, stamp_ns) of the last tick
         n = len(self.joint_names)
         msg = JointState(name=list(self.joint_names), position=[0.0] * n, velocity=[0.0] * n, effort=[0.0] * n)
@@ -181,7 +177,8 @@ class FrankaDriverNode(Node):
         law = loop.controller.law
         tcp = self._tcp_arm.tcp_position
         self.driver = FrankaDriverLoop(self.robot, controller.host, tcp, self.config, self.franka.Torques,
-                                       self.exceptions, after_tick=self._after_tick, connect=self._connect)
+                                       self.exceptions, after_tick=self._after_tick, connect=self._connect,
+                                       rt_priority=self.rt_priority)
         self.robot = None  # the loop owns the connection (and replaces it after a network error)
         self.get_logger().warn(
             "EFFECTIVE SAFETY VALUES: "
@@ -203,29 +200,13 @@ class FrankaDriverNode(Node):
 
     def start_driver(self) -> None:
         """Start the torque loop on its own thread."""
-        if self.driver is None or self._thread is not None:
-            return
-        self._thread = threading.Thread(target=self._drive, name="franka-driver", daemon=True)
-        self._thread.start()
-
-    def _drive(self) -> None:
-        # checked at start-up (0: normal scheduling, also when inherited)
-        self.loop_scheduling, refused = enter_loop_thread(self.rt_priority)
-        if refused:
-            self.get_logger().error(f"torque loop at normal scheduling: {refused}")
-        self.get_logger().info(f"torque loop thread: scheduling {self.loop_scheduling}")
-        try:
-            self.driver.run(self._stop)
-        except Exception as exc:  # never silently: the robot stops on its own without our commands
-            self.get_logger().fatal(f"driver loop stopped: {exc!r}")
-            raise
+        if self.driver is not None:
+            self.driver.start(self.get_logger())
 
     def stop_driver(self) -> None:
         """Stop the torque loop (ends the motion with a zero command) and join its thread."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
+        if self.driver is not None:
+            self.driver.stop()
 
     def _after_tick(self, q: np.ndarray, dq: np.ndarray, tau: np.ndarray, stamp_ns: int) -> None:
         self._latest = (q, dq, tau.copy(), stamp_ns)  # one tuple: read whole by the publisher
@@ -258,10 +239,10 @@ class FrankaDriverNode(Node):
         if d.last_error and d.last_error != self._logged_error:
             self._logged_error = d.last_error
             self.get_logger().error(f"libfranka: {d.last_error}")
-        lat = summary_us(d.timing.take_window())
+        lat = latency_summary(d.timing.take_window())
         values = {"arm": self.spec.kind, "exceptions": d.exceptions, "last_error": d.last_error,
                   "in_error": d.in_error, "recoveries": d.recoveries, "sessions": d.sessions,
-                  "loop_scheduling": self.loop_scheduling,
+                  "loop_scheduling": d.scheduling,
                   **{f"latency_{k}": f"{v:.1f}" for k, v in lat.items()}, **d.timing.counters(),
                   "resets_done": d.resets_done, "resets_failed": d.resets_failed, "last_reset": d.last_reset,
                   "tcp": np.round(d.x, 4).tolist(), "insertion_depth": f"{d.depth:.4f}", "success": d.success}
@@ -290,7 +271,7 @@ class FrankaDriverNode(Node):
         path.parent.mkdir(parents=True, exist_ok=True)
         np.save(path, lat)
         np.save(path.with_suffix(".periods.npy"), np.frombuffer(t.periods, dtype=np.float64).copy())
-        summary = {"latency": summary_us(t.latency), "period": summary_us(t.periods), **t.counters(),
+        summary = {"latency": latency_summary(t.latency), "period": latency_summary(t.periods), **t.counters(),
                    "exceptions": self.driver.exceptions, "last_error": self.driver.last_error}
         path.with_suffix(".json").write_text(json.dumps(summary, indent=1))
         self.get_logger().info(f"timing log: {lat.size} latencies to {path}")
@@ -302,13 +283,3 @@ class FrankaDriverNode(Node):
             self.write_timing_log(Path(self.params["timing_log"]))
         super().destroy_node()
 
-
-def main(args: list[str] | None = None) -> int:
-    """Console script ``franka_driver``: the driver with its composed controller (``nf_franka_stack``)."""
-    from .stack import main as stack_main
-
-    return stack_main(args)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -32,6 +32,7 @@ from nf_core.panda_spec import (
     Q_PLAUSIBLE_MIN,
 )
 from nf_core.policy_params import POLICY_LIMITS, PolicyLimits, PolicyParameterError, PolicyParameters
+from nf_core.tick_timing import latency_summary
 
 from .arm_model import ArmModel
 from .controller import (
@@ -152,15 +153,12 @@ class LatencyStats:
         self.total += 1
 
     def report(self) -> dict[str, float]:
-        """p50/p90/p99/max in microseconds and the count since the last report; starts a new window."""
+        """``latency_summary`` of the window (microseconds), with the count of every latency since the
+        last report (a full window keeps only the newest); starts a new window."""
         n = min(self._n, self._buf.size)
         count = self._n
         self._n = 0
-        if n == 0:
-            return {"count": 0, "p50_us": 0.0, "p90_us": 0.0, "p99_us": 0.0, "max_us": 0.0}
-        p50, p90, p99 = np.percentile(self._buf[:n], [50, 90, 99]) * 1e6
-        return {"count": count, "p50_us": float(p50), "p90_us": float(p90), "p99_us": float(p99),
-                "max_us": float(self._buf[:n].max() * 1e6)}
+        return {**latency_summary(self._buf[:n]), "count": count}
 
 
 class _NoPolicy:

@@ -1,5 +1,6 @@
 """Timing of a driver's control loop that hosts the controller (the composed sim, the Franka
-driver), measured on the driver's own clock (``time.perf_counter``). ROS-free.
+driver), measured on the driver's own clock (``time.perf_counter``), and the one summary of
+latencies (``latency_summary``) every loop, driver and controller reports. ROS-free.
 
 The driver says what "late" means for it: the sim schedules its own ticks (a tick that starts
 more than a millisecond after its schedule is late); a robot's driver is late when the command
@@ -9,6 +10,8 @@ leaves more than a millisecond after the state arrived.
 from __future__ import annotations
 
 import array
+
+import numpy as np
 
 LATE_AFTER = 0.001  # s: the lateness both drivers count against (one 1 kHz cycle)
 LONG_LATE_RUN = 3  # runs of at least this many late ticks are kept with their time (``long_runs``)
@@ -76,3 +79,15 @@ class TickTiming:
         """Counts for diagnostics and benchmarks."""
         return {"ticks": self.ticks, "late_ticks": self.late, "longest_late_run": self.longest_run,
                 "resyncs": self.resyncs, "missed_cycles": self.missed_cycles}
+
+
+def latency_summary(values_s: array.array | np.ndarray | list[float]) -> dict[str, float]:
+    """count, p50/p90/p99/p99.9/max of durations given in s, in microseconds (all 0 when empty).
+    The one latency summary of the stack: diagnostics and logs prefix these keys, never rename them."""
+    a = np.frombuffer(values_s, dtype=np.float64) if isinstance(values_s, array.array) \
+        else np.asarray(values_s, dtype=np.float64)
+    if a.size == 0:
+        return {"count": 0, "p50_us": 0.0, "p90_us": 0.0, "p99_us": 0.0, "p999_us": 0.0, "max_us": 0.0}
+    p50, p90, p99, p999 = np.percentile(a, [50, 90, 99, 99.9]) * 1e6
+    return {"count": int(a.size), "p50_us": float(p50), "p90_us": float(p90), "p99_us": float(p99),
+            "p999_us": float(p999), "max_us": float(a.max() * 1e6)}

@@ -26,7 +26,7 @@ have a subscriber (looked up every ``LISTENERS_PERIOD``; ``/diagnostics`` counts
 out as ``monitor_skipped``): a headless learning run does not pay for them.
 In realtime mode the driver thread, and only it, runs at the SCHED_FIFO priority ``rt_priority``
 gives (``nf_core.thread_priority``; auto: 99 when the system allows it), as the Franka
-driver's torque loop does.
+driver's torque loop does: both are an ``nf_core.driver_loop.DriverLoop``.
 """
 
 from __future__ import annotations
@@ -34,7 +34,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import threading
 import time
 from pathlib import Path
 
@@ -48,22 +47,17 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
-from nf_controller_node.host import ControllerHost
 from nf_core import qos, topics
+from nf_core.driver_loop import LoopHost, loop_priority
 from nf_core.ros_runtime import declare_read_only, run_node
 from nf_core.serialized_message import SerializedMessage
-from nf_core.thread_priority import (
-    AUTO,
-    check_priority_allowed,
-    enter_loop_thread,
-    resolve_priority,
-    top_priority,
-)
+from nf_core.thread_priority import AUTO, top_priority
+from nf_core.tick_timing import latency_summary
 from nf_core.topics import parse_stamp_label
 from sim_bridge_node.bridge import ACCEPTED, BridgeConfig, SimBridge
-from sim_bridge_node.composed import SimDriverLoop, latencies_us
+from sim_bridge_node.composed import SimDriverLoop
 from sim_bridge_node.env import InsertionEnv
-from sim_bridge_node.response_timing import ResponseTiming, latency_summary
+from sim_bridge_node.response_timing import ResponseTiming
 from sim_bridge_node.scenes import TASKS
 
 PARAMETERS = {
@@ -130,7 +124,7 @@ def _check(p: dict) -> None:
 class SimBridgeNode(Node):
     """Wires a ``SimBridge`` to ros2_control-style topics; see the module docstring."""
 
-    def __init__(self, state_qos: QoSProfile = qos.STATE, host: ControllerHost | None = None) -> None:
+    def __init__(self, state_qos: QoSProfile = qos.STATE, host: LoopHost | None = None) -> None:
         super().__init__("sim_bridge")
         p = declare_read_only(self, PARAMETERS)
         _check(p)
@@ -146,12 +140,8 @@ class SimBridgeNode(Node):
             raise ValueError(f"rt_priority {p['rt_priority']} applies to the composed realtime loop only "
                              "(nf_sim_stack): the standalone bridge ticks on its executor")
         # the driver thread's scheduling, checked now (composed realtime only): never dropped silently
-        self.rt_priority, required = (0, False) if host is None or self.lockstep else \
-            resolve_priority(p["rt_priority"], realtime_enforced=False)
-        refused = check_priority_allowed(self.rt_priority, "the composed realtime loop") if required else ""
-        if refused:
-            raise ValueError(refused)
-        self.loop_scheduling = "not started"
+        rt_priority = 0 if host is None or self.lockstep else \
+            loop_priority(p["rt_priority"], realtime_enforced=False, loop="the composed realtime loop")
         dt = self.bridge.dt
         self._status_every = max(1, round(1.0 / (p["task_status_rate"] * dt))) if p["task_status_rate"] else 0
         self._clock_every = max(1, round(p["clock_period"] / dt))
@@ -177,12 +167,10 @@ class SimBridgeNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos.DIAGNOSTICS)
         self.create_service(ResetSim, "~/reset", self._on_reset)
         self.driver: SimDriverLoop | None = None
-        self._driver_thread: threading.Thread | None = None
-        self._driver_stop = threading.Event()
         if host is not None:
             self.driver = SimDriverLoop(self.bridge, host, realtime=not self.lockstep, after_step=self._after_step,
                                         keep_timing=bool(p["response_log"]), spin=p["realtime_spin"],
-                                        warm=bool(p["realtime_warm"]))
+                                        warm=bool(p["realtime_warm"]), rt_priority=rt_priority)
             self._cmd = Float64MultiArray()
             self._cmd_dim = MultiArrayDimension(label=topics.stamp_label(0), size=n, stride=n)
             self._cmd.layout.dim = [self._cmd_dim]
@@ -224,30 +212,14 @@ class SimBridgeNode(Node):
 
     # ------------------------------------------------------------------ composed: the driver thread
     def start_driver(self) -> None:
-        """Composed: start stepping the world with the controller's torques on a driver thread."""
-        if self.driver is None or self._driver_thread is not None:
-            return
-        self._driver_thread = threading.Thread(target=self._drive, name="sim-driver", daemon=True)
-        self._driver_thread.start()
-
-    def _drive(self) -> None:
-        # checked at start-up (0: normal scheduling, also when inherited)
-        self.loop_scheduling, refused = enter_loop_thread(self.rt_priority)
-        if refused:
-            self.get_logger().error(f"driver loop at normal scheduling: {refused}")
-        self.get_logger().info(f"driver thread ({self.params['mode']}): scheduling {self.loop_scheduling}")
-        try:
-            self.driver.run(self._driver_stop)
-        except Exception as exc:  # the loop must not die silently: say why, the arm stops stepping
-            self.get_logger().fatal(f"driver loop stopped: {exc!r}")
-            raise
+        """Composed: start stepping the world with the controller's torques on the driver thread."""
+        if self.driver is not None:
+            self.driver.start(self.get_logger())
 
     def stop_driver(self) -> None:
         """Composed: stop the driver thread (joins it)."""
-        self._driver_stop.set()
-        if self._driver_thread is not None:
-            self._driver_thread.join(timeout=5.0)
-            self._driver_thread = None
+        if self.driver is not None:
+            self.driver.stop()
 
     def _publish_applied_command(self) -> None:
         """Composed: the command applied in the last step, labelled with the state it answered."""
@@ -399,11 +371,11 @@ class SimBridgeNode(Node):
             values.update({f"response_{k}": f"{v:.1f}" for k, v in lat.items()})
             values.update(self.timing.counters())
         if self.driver is not None:
-            values["loop_scheduling"] = self.loop_scheduling
+            values["loop_scheduling"] = self.driver.scheduling
             values["monitor_skipped"] = self.monitor_skipped
         timing = self.driver.timing if self.driver is not None else None
         if timing is not None:
-            lat = latencies_us(timing.take_window())
+            lat = latency_summary(timing.take_window())
             values.update({f"tick_{k}": f"{v:.1f}" for k, v in lat.items()})
             values.update(timing.counters())
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
@@ -429,8 +401,7 @@ class SimBridgeNode(Node):
         path.parent.mkdir(parents=True, exist_ok=True)
         np.save(path, lat)
         np.save(path.with_suffix(".periods.npy"), periods)
-        summary = {"composed": True, **latencies_us(timing.latency),
-                   "period": {k: v for k, v in latencies_us(timing.periods).items()},
+        summary = {"composed": True, **latency_summary(timing.latency), "period": latency_summary(timing.periods),
                    **timing.counters(), "command_timeouts": self.bridge.command_timeouts,
                    "hold_steps": self.bridge.hold_steps, "steps": self.bridge.steps,
                    "long_late_runs": [{"at_s": round(t, 3), "ticks": n} for t, n in timing.long_runs]}

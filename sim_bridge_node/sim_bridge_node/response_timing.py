@@ -7,15 +7,14 @@ run of consecutive misses is what decides whether a controller could drive the r
 
 ``ResponseTiming`` is ROS-free: the node calls ``published`` at each tick and ``answered`` for
 each command, with wall times from the same clock. Misses are counted from the first answer on
-(before it no controller is running and the driver holds the arm).
+(before it no controller is running and the driver holds the arm). The latencies are summarised
+with ``nf_core.tick_timing.latency_summary``, as the driver loops' are.
 """
 
 from __future__ import annotations
 
 import array
 from collections import OrderedDict
-
-import numpy as np
 
 _PENDING = 64  # states remembered for matching late answers
 LONG_RUN = 5  # runs of at least this many misses are kept with their time (``long_runs``)
@@ -89,12 +88,3 @@ class ResponseTiming:
         return {"states": self.states, "answers": self.answers, "late_answers": self.late_answers,
                 "deadline_misses": self.misses, "longest_miss_run": self.longest_run}
 
-
-def latency_summary(latencies_s: np.ndarray | list[float]) -> dict[str, float]:
-    """Median, p90, p99, p99.9 and max of latencies, in microseconds (NaN when empty)."""
-    lat = np.asarray(latencies_s, dtype=np.float64) * 1e6
-    if lat.size == 0:
-        return {k: float("nan") for k in ("p50_us", "p90_us", "p99_us", "p99_9_us", "max_us")}
-    p50, p90, p99, p999 = np.percentile(lat, [50, 90, 99, 99.9])
-    return {"p50_us": float(p50), "p90_us": float(p90), "p99_us": float(p99), "p99_9_us": float(p999),
-            "max_us": float(lat.max())}

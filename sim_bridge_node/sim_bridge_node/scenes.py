@@ -197,7 +197,7 @@ def _cylinder(body: mujoco.MjsBody, name: str, radius: float, z0: float, z1: flo
 
 def add_shaft(spec: mujoco.MjSpec) -> None:
     """Stepped shaft: base block, shoulder, 28 mm pin (convex pieces: one box, two cylinders), its
-    top face at ``FIXTURE_TOP`` over ``FIXTURE_XY`` (``franka_driver.franky_launch`` moves a copy)."""
+    top face at ``FIXTURE_TOP`` over ``FIXTURE_XY`` (``nf_bringup.testing.franky`` moves a copy)."""
     body = spec.worldbody.add_body()
     body.name = "shaft"
     body.pos = [FIXTURE_XY[0], FIXTURE_XY[1], 0.0]

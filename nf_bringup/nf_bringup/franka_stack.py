@@ -1,5 +1,4 @@
-"""``nf_franka_stack`` (also ``franka_driver``): a Franka arm and the stable flow controller composed
-in one process.
+"""``nf_franka_stack``: a Franka arm and the stable flow controller composed in one process.
 
 Two ROS nodes, ``franka_driver`` and ``nf_controller``, with their own names and parameters, as
 ``nf_sim_stack`` composes the MuJoCo arm; the 1 kHz state -> torque call is a direct call from
@@ -18,10 +17,9 @@ import sys
 
 from rclpy.node import Node
 
+from franka_driver.node import FrankaDriverNode
 from nf_controller_node.node import NFControllerNode
 from nf_core.ros_runtime import freeze_heap, run_node
-
-from .node import FrankaDriverNode
 
 # GIL hand-over interval of the composed process (as nf_sim_stack): a busy executor thread must
 # not keep the torque loop waiting for Python's default 5 ms.
@@ -50,7 +48,7 @@ def _start(nodes: list[Node]) -> None:
 
 
 def main(args: list[str] | None = None) -> int:
-    """Console scripts ``nf_franka_stack`` and ``franka_driver``."""
+    """Console script ``nf_franka_stack``."""
     sys.setswitchinterval(SWITCH_INTERVAL)
     return run_node(make_nodes, "nf_franka_stack", "A Franka arm (libfranka torque loop) and the stable flow "
                     "controller composed in one process (the 1 kHz tick is a direct call; both nodes keep their "
