@@ -11,27 +11,64 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import sources  # noqa: F401  (the package sources first on sys.path)
+from nf_bags import bagfile, reader
+from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
+
+from nf_bringup.processes import RosProcess, allocate_domain_id, isolate
+from nf_core import qos
+from nf_core.flow_spec import FlowArchitecture
+from nf_core.policy_params import PolicyParameters
+from sim_bridge_node.env import InsertionEnv
 
 HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
-sys.path[:0] = [str(REPO / p) for p in
-               ("tests", "bags", "nf_core", "nf_controller_node", "sim_bridge_node", "learner_node")]
-
-from nf_bags import bagfile, reader  # noqa: E402
-from nf_msgs.msg import PolicyParameters as PolicyParametersMsg  # noqa: E402
-
-from sim_bridge_node.env import InsertionEnv  # noqa: E402
-
-from ros_testing import RosProcess, allocate_domain_id  # noqa: E402
-from test_nodes import LATCHED, Probe, policy_msg  # noqa: E402
-
 TOPICS = ["/joint_states", "/effort_controller/commands", "/clock", "/task_status", "/controller_status"]
+
+
+class Probe:
+    """This process's ROS node in its own context, spun until a condition holds."""
+
+    def __init__(self, domain: int) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        isolate(os.environ, domain, sources=False)  # as the children: loopback, UDP
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self.node = rclpy.create_node("bench_bags_probe", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_until(self, predicate: Callable[[], bool], timeout: float) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not predicate():
+            self.executor.spin_once(timeout_sec=0.02)
+        return predicate()
+
+    def spin_for(self, seconds: float) -> None:
+        self.spin_until(lambda: False, seconds)
+
+    def close(self) -> None:
+        import rclpy
+
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+def policy_msg(x_ref: np.ndarray) -> PolicyParametersMsg:
+    """Version 7 of a flow policy with random weights (stable for any), S = 40 I, D = 20 I."""
+    arch = FlowArchitecture(dim=3, n_flow=2, n_hidden=16, activation="gelu")
+    weights = np.random.default_rng(0).uniform(-0.25, 0.25, arch.n_params)
+    params = PolicyParameters(arch, weights, np.zeros(1), 40.0 * np.eye(3), 20.0 * np.eye(3),
+                              np.asarray(x_ref, float), version=7)
+    return params.fill_msg(PolicyParametersMsg())
 
 
 def cpu_seconds(pid: int) -> float:
@@ -52,7 +89,7 @@ def run(seconds: float) -> dict:
     ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "-p", "idle_mode:=policy"], domain,
                      tmp / "ctl.log")
     try:
-        probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", LATCHED).publish(
+        probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", qos.POLICY).publish(
             policy_msg(InsertionEnv("gear").goal_position))
         assert probe.spin_until(lambda: all(f"recording {t} (" in rec.log() for t in TOPICS), 40), rec.log()
         probe.spin_for(1.0)  # warm-up: the stack runs, the recorder has matched everyone

@@ -38,13 +38,14 @@ import json
 import os
 import platform
 import re
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+import sources  # noqa: F401  (the package sources first on sys.path)
+
+from nf_bringup.processes import RosProcess, allocate_domain_id, isolate
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -55,40 +56,23 @@ ABORT_RUN = 20  # consecutive missed cycles at which a Franka stops
 COMPOSED_P99_US, COMPOSED_LATE_FRACTION, COMPOSED_LATE_RUN_MAX = 100.0, 0.001, 3
 
 
-def _env(domain: int) -> dict[str, str]:
-    return dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-                PYTHONUNBUFFERED="1")
-
-
-def _stop(proc: subprocess.Popen, timeout: float = 15.0) -> None:
-    """SIGINT, then SIGKILL if it does not exit (only our own child, by PID)."""
-    if proc.poll() is None:
-        proc.send_signal(2)
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
 def _policy_publisher(domain: int):
     """A node in this process that latches the gear task's iteration-0 policy (version 1); the
     returned tuple's last item publishes it again under the next version."""
     import rclpy
     from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
     from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
     from learner_node.config import TrainConfig
     from learner_node.trainer import Trainer
-    from nf_core import topics
+    from nf_core import qos, topics
 
     params = Trainer(TrainConfig.from_sources(CONFIG, {"rollouts_per_iter": 1})).policy.to_params(version=1)
+    isolate(os.environ, domain, sources=False)  # as the children: loopback, UDP
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain)
     node = rclpy.create_node("bench_policy", context=context)
-    qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    pub = node.create_publisher(PolicyParametersMsg, topics.POLICY_PARAMETERS, qos)
+    pub = node.create_publisher(PolicyParametersMsg, topics.POLICY_PARAMETERS, qos.POLICY)
     pub.publish(params.fill_msg(PolicyParametersMsg()))
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
@@ -125,8 +109,10 @@ def wake_floor(seconds: float, spin: float) -> dict:
     return out
 
 
-def run_phase(name: str, seconds: float, domain: int, workdir: Path, log_dir: Path) -> dict:
-    """One phase: start sim + responder, wait for the first answers, run ``seconds``, stop, read the log."""
+def run_phase(name: str, seconds: float, workdir: Path, log_dir: Path) -> dict:
+    """One phase in its own ROS domain: start sim + responder, wait for the first answers, run ``seconds``,
+    stop, read the log."""
+    domain = allocate_domain_id()
     log = workdir / f"{name}.npy"
     sim_args = ["-m", "sim_bridge_node.node", "--ros-args", "--params-file", str(CONFIG),
                 "-p", "sim_bridge:mode:=realtime", "-p", f"sim_bridge:response_log:={log}"]
@@ -145,28 +131,25 @@ def run_phase(name: str, seconds: float, domain: int, workdir: Path, log_dir: Pa
     else:
         responder = ["-m", "nf_controller_node.node", "--ros-args", "--params-file", str(CONFIG),
                      "-p", "nf_controller:idle_mode:=policy"]
-    env = _env(domain)
-    outs = {k: open(log_dir / f"{name}_{k}.log", "w") for k in ("sim", "responder")}
     ros = None
     # Responder first, so it is compiled and subscribed before the first tick.
     resp = None
     if responder is not None:
-        resp = subprocess.Popen([sys.executable, *responder], env=env, stdout=outs["responder"],
-                                stderr=subprocess.STDOUT)
+        resp = RosProcess(responder, domain, log_dir / f"{name}_responder.log")
     sim = None
     swaps = 0
     try:
         if name != "baseline":
             ros = _policy_publisher(domain)
         time.sleep(3.0 if name == "baseline" else 8.0 if resp is not None else 0.0)
-        sim = subprocess.Popen([sys.executable, *sim_args], env=env, stdout=outs["sim"], stderr=subprocess.STDOUT)
+        sim = RosProcess(sim_args, domain, log_dir / f"{name}_sim.log")
         time.sleep(5.0)  # discovery, first answers, policy swap
         print(f"[{name}] running {seconds:.0f} s", flush=True)
         t0 = time.monotonic()
         next_report = t0 + 60.0
         next_swap = t0 + 1.0
         while time.monotonic() - t0 < seconds:
-            if sim.poll() is not None or (resp is not None and resp.poll() is not None):
+            if not sim.alive() or (resp is not None and not resp.alive()):
                 raise RuntimeError(f"{name}: a process exited early (logs in {log_dir})")
             if ros is not None:
                 ros[2].spin_once(timeout_sec=0.2)
@@ -182,14 +165,12 @@ def run_phase(name: str, seconds: float, domain: int, workdir: Path, log_dir: Pa
                 next_report += 60.0
     finally:
         if sim is not None:
-            _stop(sim)  # the sim first: it writes the log, and no misses are counted for a stopping responder
+            sim.stop(15.0)  # the sim first: it writes the log, and no misses are counted for a stopping responder
         if resp is not None:
-            _stop(resp)
+            resp.stop(15.0)
         if ros is not None:
             ros[1].destroy_node()
             ros[0].try_shutdown()
-        for f in outs.values():
-            f.close()
     summary_file = log.with_suffix(".json")
     if not summary_file.exists():
         raise RuntimeError(f"{name}: the sim wrote no response log (see {log_dir})")
@@ -211,7 +192,7 @@ def run_phase(name: str, seconds: float, domain: int, workdir: Path, log_dir: Pa
     summary["latency_samples"] = int(lat.size)
     summary["miss_fraction"] = summary["deadline_misses"] / max(summary["states"], 1)
     print(f"[{name}] {lat.size} answers: median {summary['p50_us']:.0f} us, p99 {summary['p99_us']:.0f} us, "
-          f"p99.9 {summary['p99_9_us']:.0f} us, max {summary['max_us']:.0f} us; misses {summary['deadline_misses']} "
+          f"p99.9 {summary['p999_us']:.0f} us, max {summary['max_us']:.0f} us; misses {summary['deadline_misses']} "
           f"({100 * summary['miss_fraction']:.3f} %), longest run {summary['longest_miss_run']}, "
           f"command timeouts {summary['command_timeouts']}", flush=True)
     for run in summary.get("long_miss_runs", []):
@@ -241,7 +222,6 @@ def main() -> int:
         args.seconds, args.sleep_seconds, args.topic_seconds, args.baseline_seconds = 30.0, 30.0, 30.0, 10.0
         args.cold_seconds = args.normal_seconds = 30.0
         args.floor_seconds = 10.0
-    domain = 100 + os.getpid() % 50
     load_before = os.getloadavg()
     baseline = controller = composed_sleep = composed_cold = composed_normal = None
     floor = None
@@ -250,19 +230,19 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         log_dir = args.out.parent / "realtime_logs"
         log_dir.mkdir(parents=True, exist_ok=True)
-        composed = run_phase("composed", args.seconds, domain + 2, Path(tmp), log_dir)
+        composed = run_phase("composed", args.seconds, Path(tmp), log_dir)
         if args.sleep_seconds > 0:
-            composed_sleep = run_phase("composed_sleep", args.sleep_seconds, domain + 3, Path(tmp), log_dir)
+            composed_sleep = run_phase("composed_sleep", args.sleep_seconds, Path(tmp), log_dir)
             composed_sleep["late_fraction"] = composed_sleep["late_ticks"] / max(composed_sleep["ticks"], 1)
         if args.cold_seconds > 0:
-            composed_cold = run_phase("composed_cold", args.cold_seconds, domain + 4, Path(tmp), log_dir)
+            composed_cold = run_phase("composed_cold", args.cold_seconds, Path(tmp), log_dir)
             composed_cold["late_fraction"] = composed_cold["late_ticks"] / max(composed_cold["ticks"], 1)
         if args.normal_seconds > 0:
-            composed_normal = run_phase("composed_normal", args.normal_seconds, domain + 5, Path(tmp), log_dir)
+            composed_normal = run_phase("composed_normal", args.normal_seconds, Path(tmp), log_dir)
             composed_normal["late_fraction"] = composed_normal["late_ticks"] / max(composed_normal["ticks"], 1)
         if args.topic_seconds > 0:
-            baseline = run_phase("baseline", args.baseline_seconds, domain, Path(tmp), log_dir)
-            controller = run_phase("controller", args.topic_seconds, domain + 1, Path(tmp), log_dir)
+            baseline = run_phase("baseline", args.baseline_seconds, Path(tmp), log_dir)
+            controller = run_phase("controller", args.topic_seconds, Path(tmp), log_dir)
     late_fraction = composed["late_ticks"] / max(composed["ticks"], 1)
     composed["late_fraction"] = late_fraction
     result = {

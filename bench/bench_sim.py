@@ -14,21 +14,18 @@ import json
 import os
 import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import mujoco
 import numpy as np
+import sources  # noqa: F401  (the package sources first on sys.path)
+
+from sim_bridge_node.batched_env import BatchedEnv
+from sim_bridge_node.env import InsertionEnv
+from sim_bridge_node.scripted_insertion import push_torque, run_insertion
 
 ROOT = Path(__file__).resolve().parents[1]
-for pkg in ("nf_core", "nf_controller_node", "sim_bridge_node"):
-    if str(ROOT / pkg) not in sys.path:
-        sys.path.insert(0, str(ROOT / pkg))
-
-from sim_bridge_node.batched_env import BatchedEnv  # noqa: E402
-from sim_bridge_node.env import InsertionEnv  # noqa: E402
-from sim_bridge_node.scripted_insertion import push_torque, run_insertion  # noqa: E402
 
 STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
 

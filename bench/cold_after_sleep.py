@@ -21,6 +21,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import sources  # noqa: F401  (the package sources first on sys.path)
+
+from nf_bringup.processes import allocate_domain_id, isolate
 
 HERE = Path(__file__).resolve().parent
 GAPS_S = (0.0, 0.001, 0.02)
@@ -43,8 +46,7 @@ def main() -> int:
     parser.add_argument("--calls", type=int, default=200, help="calls per operation and gap")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "cold_after_sleep.json")
     args = parser.parse_args()
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # loopback only, its own domain
-    os.environ["ROS_DOMAIN_ID"] = str(200 + os.getpid() % 30)
+    isolate(os.environ, allocate_domain_id(), sources=False)  # loopback only, its own domain
     import rclpy
     from nf_msgs.msg import ControllerStatus
 

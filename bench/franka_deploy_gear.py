@@ -1,6 +1,6 @@
 """A trained gear policy deployed over libfranka onto franky-sim's gear fixture: does it insert?
 
-Starts ``franky_launch --gear --gear-load`` (``--frictionless`` passes on), ``nf_franka_stack``
+Starts ``nf_bringup.testing.franky --gear --gear-load`` (``--frictionless`` passes on), ``nf_franka_stack``
 (``config/franka.yaml``, idle_mode policy) and ``deploy_policy`` twice with the given checkpoint:
 first with x_ref above the fixture (``--above``, the driver's reset pose), then with x_ref at the
 fixture's goal (``--goal``); meanwhile it prints the driver's TCP, insertion depth and success from
@@ -22,6 +22,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import sources  # noqa: F401  (the package sources first on sys.path)
+
 REPO = Path(__file__).resolve().parent.parent
 
 
@@ -39,10 +41,11 @@ def main() -> int:
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-    from nf_bringup.processes import ManagedProcess
+    from nf_bringup.processes import ManagedProcess, allocate_domain_id, isolate, ros_env
 
-    domain = 200 + os.getpid() % 30
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    domain = allocate_domain_id()
+    env = ros_env(domain)
+    isolate(os.environ, domain, sources=False)  # this process's node too: loopback, UDP
     py = sys.executable
     procs: list[ManagedProcess] = []
     rclpy.init(args=["--ros-args"], domain_id=domain)
@@ -70,12 +73,13 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         logs = Path(tmp)
         try:
-            sim = [py, "-m", "franka_driver.franky_launch", "--gear", "--gear-load"]
+            sim = [py, "-m", "nf_bringup.testing.franky", "--gear", "--gear-load"]
             procs.append(ManagedProcess("franky", sim + (["--frictionless"] if args.frictionless else []), env,
                                         logs, echo=False))
             time.sleep(5.0)
             procs.append(ManagedProcess("stack", [
-                py, "-m", "franka_driver.stack", "--ros-args", "--params-file", str(REPO / "config" / "franka.yaml"),
+                py, "-m", "nf_bringup.franka_stack", "--ros-args",
+                "--params-file", str(REPO / "config" / "franka.yaml"),
                 "-p", "franka_driver:robot_ip:=127.0.0.1", "-p", "franka_driver:realtime:=ignore",
                 "-p", "nf_controller:idle_mode:=policy"], env, logs, echo=False))
             time.sleep(8.0)
@@ -83,7 +87,7 @@ def main() -> int:
                                                   ("goal", args.goal, 100001, args.seconds)):
                 print(f"x_ref {x_ref} ({name}):", flush=True)
                 procs.append(ManagedProcess(f"deploy_{name}", [
-                    py, "-m", "franka_driver.deploy", str(args.checkpoint), "--x-ref", *map(str, x_ref),
+                    py, "-m", "learner_node.deploy", str(args.checkpoint), "--x-ref", *map(str, x_ref),
                     "--version", str(version), "--seconds", str(seconds)], env, logs, echo=False))
                 watch(seconds)
         finally:

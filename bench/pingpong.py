@@ -11,16 +11,17 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
-import sys
 import time
 
 import numpy as np
 import rclpy
+import sources  # noqa: F401  (the package sources first on sys.path)
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
+
+from nf_bringup.processes import RosProcess, allocate_domain_id, isolate
 
 QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -45,8 +46,9 @@ def serve(seconds: float) -> None:
 
 def measure(seconds: float, warmup: float = 1.0) -> dict:
     """Pinging side: start the echo process, bounce for ``seconds`` after ``warmup``, return stats."""
-    echo = subprocess.Popen([sys.executable, __file__, "--role", "echo", "--seconds", str(seconds + warmup + 8)],
-                            env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    domain = int(os.environ.get("ROS_DOMAIN_ID") or allocate_domain_id())  # the caller's, else its own
+    isolate(os.environ, domain, sources=False)  # this side as the echo side: loopback, UDP
+    echo = RosProcess([__file__, "--role", "echo", "--seconds", str(seconds + warmup + 8)], domain)
     rclpy.init()
     try:
         node = rclpy.create_node("pingpong")
@@ -80,8 +82,7 @@ def measure(seconds: float, warmup: float = 1.0) -> dict:
         node.destroy_node()
     finally:
         rclpy.try_shutdown()
-        echo.terminate()
-        echo.wait(10)
+        echo.stop()
     rt = np.asarray(times) * 1e6
     return {"round_trips_per_s": rt.size / seconds, "median_us": float(np.median(rt)),
             "p99_us": float(np.percentile(rt, 99)), "round_trips": int(rt.size)}

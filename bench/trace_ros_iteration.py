@@ -38,6 +38,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+import sources  # noqa: F401  (the package sources first on sys.path)
+
+from nf_bringup.processes import RosProcess, allocate_domain_id, ros_env
 
 HERE = Path(__file__).resolve().parent
 CONFIG = HERE.parent / "config" / "gear_learn.yaml"
@@ -104,37 +107,31 @@ def _traced(module: str, trace: list[tuple[str, str, str]], log: Path, steps: Pa
             args: list[str]) -> list[str]:
     spec = ",".join(":".join(t) for t in trace)
     steps_arg = f"{Path(__file__).resolve()}::{steps}" if steps else "-"  # this module (record_steps), the log
-    return [sys.executable, "-c", PRELUDE, str(log), steps_arg, spec, module, *args]
+    return ["-c", PRELUDE, str(log), steps_arg, spec, module, *args]
 
 
 def run_iteration(domain: int, workdir: Path, rollouts: int, config: Path, stack_params: list[str] = ()) -> dict:
     """One learner iteration against the composed stack, both traced: paths of the logs and the metrics row."""
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     params = ["--ros-args", "--params-file", str(config)]
     logs = {"stack": workdir / f"stack{domain}.txt", "learner": workdir / f"learner{domain}.txt",
             "steps": workdir / f"steps{domain}.npy"}
-    stack = subprocess.Popen(
+    stack = RosProcess(
         _traced("nf_bringup.sim_stack", STACK, logs["stack"], logs["steps"],
                 [*params, "-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0",
-                 *(a for p in stack_params for a in ("-p", p))]),
-        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+                 *(a for p in stack_params for a in ("-p", p))]), domain)
     try:
         out = workdir / f"run{domain}"
+        learner_args = [*params, "-p", f"learner_node:out_dir:={out}", "-p", "learner_node:iterations:=1",
+                        "-p", f"learner_node:rollouts_per_iter:={rollouts}", "-p", "learner_node:eval_episodes:=0",
+                        "-p", "learner_node:evaluate_prior:=false"]
         learner = subprocess.run(
-            _traced("learner_node.node", LEARNER, logs["learner"], None,
-                    [*params, "-p", f"learner_node:out_dir:={out}", "-p", "learner_node:iterations:=1",
-                     "-p", f"learner_node:rollouts_per_iter:={rollouts}", "-p", "learner_node:eval_episodes:=0",
-                     "-p", "learner_node:evaluate_prior:=false"]),
-            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, timeout=900)
+            [sys.executable, *_traced("learner_node.node", LEARNER, logs["learner"], None, learner_args)],
+            env=ros_env(domain), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, timeout=900)
         if learner.returncode != 0:
             raise RuntimeError(f"learner exited with {learner.returncode}: {learner.stderr[-2000:]}")
         metrics = json.loads((out / "metrics.json").read_text())[-1]
-    finally:  # stopped by PID; its exit writes the step log
-        stack.send_signal(2)
-        try:
-            stack.wait(20)
-        except subprocess.TimeoutExpired:
-            stack.kill()
+    finally:  # its exit writes the step log
+        stack.stop(20.0)
     return {**logs, "metrics": metrics}
 
 
@@ -241,7 +238,7 @@ def main() -> int:
     rows, ros, alone, walls = [], [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.repeats):
-            domain = 150 + (os.getpid() + r) % 50
+            domain = allocate_domain_id()
             print(f"[trace] iteration {r + 1}/{args.repeats} over ROS (ROS_DOMAIN_ID {domain}) ...", flush=True)
             run = run_iteration(domain, Path(tmp), args.rollouts, args.config, args.stack_param)
             rows += handovers(run["stack"], run["learner"])

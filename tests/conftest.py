@@ -1,7 +1,7 @@
-"""Shared pytest setup: every ROS context in the test process stays on loopback."""
+"""Shared pytest setup: every ROS context in the test process stays on loopback, over UDP."""
 
 import os
 
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-os.environ.pop("ROS_STATIC_PEERS", None)
-os.environ["FASTDDS_BUILTIN_TRANSPORTS"] = "UDPv4"  # see ros_testing.TEST_TRANSPORTS
+from nf_bringup.processes import isolate
+
+isolate(os.environ, domain_id=None, sources=False)

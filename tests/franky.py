@@ -1,22 +1,23 @@
-"""franky-sim (a MuJoCo FR3 behind the libfranka protocol) as the robot of a test: started on
-127.0.0.1 only, stopped by its PID; and the ROS-free driver stack built around a connection."""
+"""The ROS-free driver stack of a test, built around a connection to the franky-sim rig
+(``nf_bringup.testing.franky``)."""
 
 from __future__ import annotations
 
 import gc
-import threading
+import logging
 import time
 
 import numpy as np
 
 from franka_driver.loop import DriverConfig, FrankaDriverLoop
 from franka_driver.robot_model import ArmSpec, identify
-from franka_driver.simulator import HOST, FrankySim  # noqa: F401  (re-exported for the tests)
+from nf_bringup.testing.franky import HOST
 from nf_controller_node.control_loop import ControlLoop, LoopConfig
 from nf_controller_node.host import ControllerHost
 from nf_controller_node.torque_law import TorqueLawConfig
 from nf_core import panda_spec
-from nf_core.thread_priority import AUTO, apply, open_robot, resolve_priority
+from nf_core.driver_loop import loop_priority
+from nf_core.thread_priority import AUTO, open_robot
 
 
 class DriverRig:
@@ -52,10 +53,9 @@ class DriverRig:
                   franka.NetworkException, franka.RealtimeException, franka.InvalidOperationException)
         self.driver = FrankaDriverLoop(robot, self.host, self.tcp_arm.tcp_position, config or DriverConfig(),
                                        franka.Torques, errors, after_tick=self._record,
-                                       connect=connect)
+                                       connect=connect,  # scheduled as the driver node's with realtime: ignore
+                                       rt_priority=loop_priority(AUTO, False, "the torque loop"))
         del robot  # the loop owns the connection
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
 
     def _record(self, q: np.ndarray, dq: np.ndarray, tau: np.ndarray, stamp_ns: int) -> None:
         self.q = q
@@ -69,14 +69,7 @@ class DriverRig:
 
     def start(self) -> None:
         """The loop on its own thread, scheduled as the driver node's with ``realtime: ignore``."""
-        priority, _ = resolve_priority(AUTO, realtime_enforced=False)
-
-        def loop_thread() -> None:
-            apply(priority)
-            self.driver.run(self._stop)
-
-        self._thread = threading.Thread(target=loop_thread, daemon=True)
-        self._thread.start()
+        self.driver.start(logging.getLogger("franka-rig"))
 
     def robot_seconds(self) -> float:
         """Robot time of the last state (s)."""
@@ -90,14 +83,12 @@ class DriverRig:
             time.sleep(0.01)
         end = self.robot_seconds() + robot_seconds
         while self.robot_seconds() < end:
-            if time.monotonic() > deadline or (self._thread is not None and not self._thread.is_alive()):
+            if time.monotonic() > deadline or not self.driver.is_alive():
                 raise TimeoutError(f"robot clock at {self.robot_seconds():.3f} s, waited for {end:.3f} s")
             time.sleep(0.01)
 
     def stop(self) -> None:
         """Stop the loop and disconnect (the simulator serves one client at a time)."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(10.0)
+        self.driver.stop(10.0)
         self.driver.robot = None
         gc.collect()

@@ -1,15 +1,18 @@
 """The bag code without a ROS graph: schemas, the writer's chunks, splits and metadata, reading a
-torn file and repairing it, and the committed sample bag (bags/sample, `python -m nf_bags.sample`)
+torn file and repairing it, and the committed sample bag (bags/sample, `python -m nf_bringup.sample_bag`)
 read by two readers, summarised and re-simulated exactly."""
 
 from __future__ import annotations
 
 import shutil
+import threading
 from collections import defaultdict
 from pathlib import Path
 
 import pytest
 from nf_bags import bagfile, reader, resim
+from nf_bags.bagfile import BagError
+from nf_bags.play import read_ahead
 from nf_bags.schemas import message_definition
 from nf_bags.writer import BagWriter, WriterConfig
 from rosbags.highlevel import AnyReader
@@ -161,3 +164,23 @@ def test_chunks_never_span_chunk_seconds_of_receive_time_even_when_the_timer_is_
     assert bound["lost_at_least"] == 100 and bound["guaranteed"]
     assert bound["lost_until_ns"] == pending + 1_000_000_000
     writer.close()
+
+
+def test_player_reads_ahead_in_order_and_hands_over_a_read_error(sample_messages):
+    """The replay's messages come from a read-ahead thread (a timed replay must not decode a chunk
+    while a message is due): same order, a reader's error raised in the player, a stop honoured."""
+    stop = threading.Event()
+    ahead = list(read_ahead(bagfile.iter_raw(SAMPLE), stop, depth=7))
+    assert [m.data for m in ahead] == [m.data for m in sample_messages]
+
+    def broken():
+        yield sample_messages[0]
+        raise BagError("torn chunk")
+
+    got = []
+    with pytest.raises(BagError, match="torn chunk"):
+        for raw in read_ahead(broken(), stop):
+            got.append(raw)
+    assert len(got) == 1
+    stop.set()
+    assert list(read_ahead(iter(sample_messages), stop)) == []

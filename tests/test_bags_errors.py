@@ -19,19 +19,14 @@ from nf_bags import bagfile, reader, resim
 from nf_bags.record import message_class
 from nf_bags.writer import BagWriter, WriterConfig, qos_dict
 
-from ros_testing import REPO
+from ros_testing import REPO, ros_env
 
 SAMPLE = REPO / "bags" / "sample"
 
 
 def run_tool(*args: str) -> subprocess.CompletedProcess:
     """``python -m <args>`` with nf_bags importable; a ROS domain of this test range, loopback only."""
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(REPO / "bags"), *[str(REPO / p) for p in
-                                         ("nf_core", "nf_controller_node", "learner_node", "sim_bridge_node")],
-                                         env.get("PYTHONPATH", "")])
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env.setdefault("ROS_DOMAIN_ID", "66")
+    env = ros_env(int(os.environ.get("ROS_DOMAIN_ID") or 66))
     return subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True, env=env, timeout=180)
 
 

@@ -1,4 +1,4 @@
-"""The gear task in franky-sim (``python -m franka_driver.franky_launch --gear``): our gear scene's
+"""The gear task in franky-sim (``python -m nf_bringup.testing.franky --gear``): our gear scene's
 shaft with its mouth at the driver's default ``fixture_position`` and the gear welded to the FR3
 hand. The driver's torque loop (``FrankaDriverLoop`` over pylibfranka, reset motions, success
 from the TCP of its own arm model with the gear) runs episodes of a deterministic policy (identity
@@ -17,15 +17,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from franka_driver.franky_launch import GEAR_BODY, HAND_BODY
 from franka_driver.loop import DriverConfig, reset_policy
+from nf_bringup.testing.franky import GEAR_BODY, HAND_BODY, FrankySim
 from nf_core import panda_spec
 from nf_core.episode import EpisodeRun, EpisodeSpec
 from nf_core.policy_params import PolicyParameters
 from nf_core.reward import RewardWeights
 from sim_bridge_node import scenes
 
-from franky import DriverRig, FrankySim
+from franky import DriverRig
 
 pylibfranka = pytest.importorskip("pylibfranka")
 

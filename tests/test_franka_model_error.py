@@ -2,7 +2,7 @@
 (issue 14): what is left is the error of the controller's arm model (and of franky-sim's own
 gravity compensation), not friction / stiffness.
 
-``FrankySim(frictionless=True)`` runs ``python -m franka_driver.franky_launch --frictionless``:
+``FrankySim(frictionless=True)`` runs ``python -m nf_bringup.testing.franky --frictionless``:
 franky-sim's MuJoCo FR3 built as its console script builds it, with ``frictionloss`` of the seven
 arm joints zeroed and nothing else changed. With friction, the same loop is measured by
 ``tests/test_franka_driver.py::test_converges_in_free_space_to_x_ref_with_limits_respected``.
@@ -16,12 +16,13 @@ import re
 import numpy as np
 import pytest
 
-from franka_driver import franky_launch
 from franka_driver.loop import reset_policy
 from franka_driver.robot_model import FR3, PANDA
+from nf_bringup.testing import franky as rig
+from nf_bringup.testing.franky import FrankySim
 from nf_core import panda_spec
 
-from franky import DriverRig, FrankySim
+from franky import DriverRig
 
 pylibfranka = pytest.importorskip("pylibfranka")
 
@@ -45,10 +46,10 @@ def test_launcher_changes_only_the_arm_joints_friction():
     for frictionless in (False, True):
         sim = MujocoSimulator(enable_visualization=False)
         sim.init()
-        franky_launch.add_robot(sim, frictionless)
+        rig.add_robot(sim, frictionless)
         sim.start()
-        names = [j.get("name") for j in franky_launch.arm_joints(sim.scene)]
-        models.append((sim.model, franky_launch.joint_frictionloss(sim.model, names)))
+        names = [j.get("name") for j in rig.arm_joints(sim.scene)]
+        models.append((sim.model, rig.joint_frictionloss(sim.model, names)))
         sim.cleanup()
     (ref, ref_friction), (mod, mod_friction) = models
     assert ref_friction == pytest.approx([1.137, 1.137, 1.137, 1.137, 0.763, 0.44, 0.248])

@@ -70,7 +70,6 @@ def _resumes(pause: float) -> int:
 @pytest.fixture
 def domain(monkeypatch):
     monkeypatch.setenv("ROS_DOMAIN_ID", str(allocate_domain_id()))
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 
 def test_spin_pause_bounds_how_often_a_waiting_coroutine_is_resumed(domain):

@@ -1,22 +1,141 @@
-"""Child processes of the stack runner: started with a private ROS domain on loopback, output
-prefixed, forwarded and kept in a log file, watched for ready lines, stopped by PID
-(SIGINT, then SIGTERM, then SIGKILL)."""
+"""Child processes of the stack, the tests and the benchmarks: the one definition of a ROS child's
+environment (its own domain, discovery on loopback only, UDP transport, the package sources
+importable), a domain-id allocator, and processes started with their output in a log file and
+stopped by their PID (SIGINT first, then harder signals).
+"""
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import MutableMapping, Sequence
 from pathlib import Path
 from typing import IO
 
+# the checkout's folders whose sources a child imports (ament_python packages and plain nf_bags)
+PACKAGE_SOURCES = ("nf_core", "nf_controller_node", "learner_node", "sim_bridge_node", "nf_bringup", "franka_driver",
+                   "bags")
+# Processes are killed by PID (SIGKILL when they do not stop); Fast DDS's shared-memory transport leaves
+# a killed peer's segments in /dev/shm, where another peer can block inside C++ for good: UDP on loopback.
+TRANSPORTS = "UDPv4"
+STOP_SIGNALS = (signal.SIGINT, signal.SIGKILL)
+_domains = itertools.count()
+
+
+def source_root() -> Path | None:
+    """The checkout holding the package sources (None for a copy installed outside one)."""
+    for parent in Path(__file__).resolve().parents:
+        if (parent / "nf_core" / "nf_core").is_dir() and (parent / "nf_bringup" / "nf_bringup").is_dir():
+            return parent
+    return None
+
+
+REPO = source_root()
+
+
+def source_paths() -> list[str]:
+    """The package source folders of the checkout (empty outside one)."""
+    return [str(REPO / p) for p in PACKAGE_SOURCES] if REPO is not None else []
+
+
+def use_sources() -> None:
+    """Put the package sources first on this process's ``sys.path`` (scripts run from a checkout)."""
+    sys.path[:0] = [p for p in source_paths() if p not in sys.path]
+
+
+def allocate_domain_id() -> int:
+    """A ROS_DOMAIN_ID: distinct per call in this process, spread by PID across processes."""
+    return 1 + (os.getpid() * 7 + next(_domains)) % 200
+
+
+def isolate(env: MutableMapping[str, str], domain_id: int | None, sources: bool = True,
+            paths: Sequence[str | Path] = ()) -> MutableMapping[str, str]:
+    """Set ``env`` (a copy, or ``os.environ`` before this process starts ROS) for a ROS process:
+    ``domain_id`` (None: keep the one it has), discovery on loopback only, UDP transport,
+    unbuffered output; ``paths`` and (``sources``) the package sources first on PYTHONPATH."""
+    if domain_id is not None:
+        env["ROS_DOMAIN_ID"] = str(domain_id)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env.pop("ROS_STATIC_PEERS", None)
+    env["FASTDDS_BUILTIN_TRANSPORTS"] = TRANSPORTS
+    env["PYTHONUNBUFFERED"] = "1"
+    front = [str(p) for p in paths] + (source_paths() if sources else [])
+    if front:
+        env["PYTHONPATH"] = os.pathsep.join([*front, *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])])
+    return env
+
+
+def ros_env(domain_id: int | None, sources: bool = True, paths: Sequence[str | Path] = (),
+            **extra: str) -> dict[str, str]:
+    """This process's environment for a ROS child (``isolate``), then ``extra`` variables on top."""
+    env = dict(os.environ)
+    isolate(env, domain_id, sources, paths)
+    env.update(extra)
+    return env
+
+
+def stop_process(proc: subprocess.Popen, timeout: float = 10.0,
+                 signals: Sequence[int] = STOP_SIGNALS) -> int | None:
+    """Send ``signals`` in turn to the process (by its PID), waiting up to ``timeout`` s after each
+    until it exits; its exit code (None if it outlived them all)."""
+    for sig in signals:
+        if proc.poll() is not None:
+            break
+        os.kill(proc.pid, sig)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            continue
+    return proc.poll()
+
+
+class RosProcess:
+    """``python <args>`` in ROS domain ``domain_id`` (``ros_env``), output in ``log_path`` (none:
+    discarded); stopped by PID. ``prefix``: a command that execs Python in its place (same PID);
+    ``paths``: folders put first on its PYTHONPATH; ``extra``: more environment variables."""
+
+    def __init__(self, args: Sequence[str], domain_id: int, log_path: Path | None = None,
+                 prefix: Sequence[str] = (), paths: Sequence[str | Path] = (), **extra: str) -> None:
+        self.log_path = log_path
+        self._out = open(log_path, "w") if log_path else None  # closed in stop
+        self.proc = subprocess.Popen([*prefix, sys.executable, *args], env=ros_env(domain_id, paths=paths, **extra),
+                                     stdout=self._out or subprocess.DEVNULL, stderr=subprocess.STDOUT)
+
+    @property
+    def pid(self) -> int:
+        """The child's PID."""
+        return self.proc.pid
+
+    def alive(self) -> bool:
+        """True while the child has not exited."""
+        return self.proc.poll() is None
+
+    def stop(self, timeout: float = 10.0) -> int | None:
+        """SIGINT, then SIGKILL (by PID), waiting up to ``timeout`` s at each; the exit code."""
+        code = stop_process(self.proc, timeout)
+        if self._out is not None:
+            self._out.close()
+        return code
+
+    def log(self) -> str:
+        """Everything the child wrote so far."""
+        return self.log_path.read_text() if self.log_path and self.log_path.exists() else ""
+
+    def __enter__(self) -> RosProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
 
 class ManagedProcess:
-    """One child process whose output is prefixed and forwarded (and kept in a log file)."""
+    """One child process of the stack runner, in its own session, whose output is prefixed and
+    forwarded, kept in ``log_dir/<name>.log`` and watched for the ``watch`` texts."""
 
     def __init__(self, name: str, argv: Sequence[str], env: dict[str, str], log_dir: Path, echo: bool = True,
                  watch: Sequence[str] = ()) -> None:
@@ -71,25 +190,7 @@ class ManagedProcess:
 
     def stop(self, timeout: float = 10.0) -> int | None:
         """SIGINT, then SIGTERM, then SIGKILL (by PID), waiting up to ``timeout`` s at each; exit code."""
-        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
-            if not self.running():
-                break
-            os.kill(self.pid, sig)
-            try:
-                self.proc.wait(timeout=timeout)
-            except subprocess.TimeoutExpired:
-                continue
+        code = stop_process(self.proc, timeout, (signal.SIGINT, signal.SIGTERM, signal.SIGKILL))
         self._thread.join(timeout=2.0)
         self._log.close()
-        return self.proc.poll()
-
-
-def ros_environment(domain_id: int | None = None) -> dict[str, str]:
-    """This process's environment with loopback-only discovery and one domain id."""
-    env = dict(os.environ)
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    if domain_id is None:
-        domain_id = int(env.get("ROS_DOMAIN_ID") or (100 + os.getpid() % 100))
-    env["ROS_DOMAIN_ID"] = str(domain_id)
-    env["PYTHONUNBUFFERED"] = "1"
-    return env
+        return code

@@ -12,13 +12,14 @@ leaves a run folder::
     runs/<time>/bag/       rosbag2 MCAP bag of the run (when the recorder is available)
     runs/<time>/learning_curves.png, final_policy.gif, summary.md, logs/<process>.log
 
-Every process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and one ROS_DOMAIN_ID.
+Every process runs in one ROS_DOMAIN_ID with discovery on loopback only (``processes.ros_env``).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib.util
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -26,7 +27,7 @@ from pathlib import Path
 
 import yaml
 
-from .processes import ManagedProcess, ros_environment
+from .processes import ManagedProcess, allocate_domain_id, ros_env
 from .run_summary import final_video, plot_curves, write_summary
 
 DEFAULT_ITERATIONS = 30  # 6-10 s each over ROS here with the recorder (composed): 4.5 min in all (README)
@@ -106,7 +107,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--iterations must be >= 1")
     run_dir = args.out or Path("runs") / time.strftime("%Y%m%d-%H%M%S")
     run_dir.mkdir(parents=True, exist_ok=True)
-    env = ros_environment(args.domain_id)
+    domain_id = args.domain_id
+    if domain_id is None:  # the caller's, else one of its own
+        domain_id = int(os.environ.get("ROS_DOMAIN_ID") or allocate_domain_id())
+    env = ros_env(domain_id, sources=False)  # the nodes run from the environment's packages (the install tree)
     print(f"[stack] run folder {run_dir}, ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']} (loopback only); "
           f"{args.iterations} iterations; Ctrl-C stops cleanly and keeps the checkpoint", flush=True)
     cmds = node_commands(args.config, run_dir, args.iterations, args.learner_arg, composed=not args.separate)

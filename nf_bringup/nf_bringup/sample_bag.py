@@ -1,54 +1,28 @@
-"""Regenerate the sample bag ``bags/sample/``: ``python -m nf_bags.sample [--out DIR]``.
+"""Regenerate the sample bag ``bags/sample/``: ``python -m nf_bringup.sample_bag [--out DIR]``.
 
-Starts sim_bridge (gear, lockstep), nf_controller (pausing between episodes, so nothing steps
-before the recorder listens) and the recorder in their own ROS domain, publishes a flow policy
-(random weights: stable for any), runs one episode through the ``run_episode`` action and stops
-everything cleanly. The result is a small closed bag (about 1.5 s of simulated time at 1 kHz).
+A bringup script (it starts a stack, as ``make run`` does): sim_bridge (gear, lockstep),
+nf_controller (pausing between episodes, so nothing steps before the recorder listens) and the
+recorder in their own ROS domain; it publishes a flow policy (random weights: stable for any),
+runs one episode through the ``run_episode`` action and stops everything cleanly. The result is a
+small closed bag (about 1.5 s of simulated time at 1 kHz).
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
-import signal
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-BAGS = Path(__file__).resolve().parents[1]
-REPO = BAGS.parent
-SAMPLE = BAGS / "sample"
+from nf_bringup.processes import REPO
+
+# the checkout's bags/sample (found from the sources or from the install tree inside the checkout)
+SAMPLE = REPO / "bags" / "sample" if REPO is not None else Path("sample")
 TOPICS = ["/joint_states", "/effort_controller/commands", "/clock", "/task_status", "/controller_status",
           "/rollouts", "/policy_parameters", "/diagnostics"]
-
-
-def _env(domain: int) -> dict[str, str]:
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
-    env.pop("ROS_STATIC_PEERS", None)
-    paths = [str(REPO / p) for p in ("nf_core", "nf_controller_node", "learner_node", "sim_bridge_node", "bags")]
-    env["PYTHONPATH"] = os.pathsep.join([*paths, env.get("PYTHONPATH", "")])
-    return env
-
-
-def _start(args: list[str], domain: int, log: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, *args], env=_env(domain), stdout=open(log, "w"),
-                            stderr=subprocess.STDOUT)
-
-
-def _stop(proc: subprocess.Popen) -> int:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
-    return proc.returncode
 
 
 def record_sample(out: Path, duration: float = 1.5, seed: int = 3, domain: int | None = None) -> Path:
@@ -59,21 +33,22 @@ def record_sample(out: Path, duration: float = 1.5, seed: int = 3, domain: int |
     from rclpy.action import ActionClient
     from rclpy.executors import SingleThreadedExecutor
 
+    from nf_bringup.processes import RosProcess, allocate_domain_id
     from nf_core import qos
     from nf_core.flow_spec import FlowArchitecture
     from nf_core.policy_params import PolicyParameters
     from nf_core.topics import POLICY_PARAMETERS
     from sim_bridge_node.env import InsertionEnv
 
-    domain = domain if domain is not None else 150 + os.getpid() % 80
+    domain = domain if domain is not None else allocate_domain_id()
     logs = Path(tempfile.mkdtemp(prefix="nf_bags_sample_"))
     tmp_bag = logs / "sample"
-    rec = _start(["-m", "nf_bags.record", "-o", str(tmp_bag), "--topics", *TOPICS], domain, logs / "recorder.log")
-    sim = _start(["-m", "sim_bridge_node.node", "--ros-args", "-p", "task:=gear", "-p", "mode:=lockstep"],
+    rec = RosProcess(["-m", "nf_bags.record", "-o", str(tmp_bag), "--topics", *TOPICS], domain, logs / "recorder.log")
+    sim = RosProcess(["-m", "sim_bridge_node.node", "--ros-args", "-p", "task:=gear", "-p", "mode:=lockstep"],
                  domain, logs / "sim.log")
     # lockstep: the sim waits for every command, so wall-time deadlines mean nothing (a busy
     # machine would latch "consecutive deadline misses" and abort the episode)
-    ctl = _start(["-m", "nf_controller_node.node", "--ros-args", "-p", "idle_mode:=pause",
+    ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "-p", "idle_mode:=pause",
                   "-p", "max_consecutive_misses:=0"], domain, logs / "controller.log")
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain)
@@ -109,10 +84,10 @@ def record_sample(out: Path, duration: float = 1.5, seed: int = 3, domain: int |
             raise RuntimeError("episode did not complete")
         spin_until(lambda: False, 1.2)  # a diagnostics report after the episode
     finally:
-        _stop(ctl)
-        _stop(sim)
+        ctl.stop()
+        sim.stop()
         time.sleep(0.3)
-        code = _stop(rec)
+        code = rec.stop()
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
@@ -128,12 +103,12 @@ def record_sample(out: Path, duration: float = 1.5, seed: int = 3, domain: int |
 
 def main(argv: list[str] | None = None) -> int:
     """Record the sample bag and print its summary."""
-    parser = argparse.ArgumentParser(prog="python -m nf_bags.sample", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m nf_bringup.sample_bag", description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=SAMPLE, help=f"bag directory (default {SAMPLE})")
     parser.add_argument("--duration", type=float, default=1.5, help="episode length, s of simulated time")
     args = parser.parse_args(argv)
     out = record_sample(args.out, args.duration)
-    from .bagfile import scan
+    from nf_bags.bagfile import scan
 
     print(scan(out).report())
     return 0

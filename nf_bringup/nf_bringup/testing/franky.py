@@ -1,0 +1,287 @@
+"""The franky-sim rig: franky-sim (a MuJoCo FR3 behind the libfranka protocol, on 127.0.0.1 only) as
+the robot of the tests and benchmarks, started and stopped by its PID, optionally changed before its
+scene is compiled.
+
+    python -m nf_bringup.testing.franky                  # as `franky-sim -s mujoco --hostname 127.0.0.1`
+    python -m nf_bringup.testing.franky --frictionless
+    python -m nf_bringup.testing.franky --gear [--gear-load] [--frictionless]
+
+    with FrankySim(Path("franky-sim.log"), gear=True) as sim:   # then connect pylibfranka to 127.0.0.1
+        ...
+
+The launcher builds franky-sim's simulator with its own public classes, in its console script's order.
+``--frictionless`` zeroes the arm joints' ``frictionloss``: that Coulomb friction stops a Cartesian
+spring short by friction / stiffness, which would hide the controller's own free-space error.
+``--gear`` adds our gear scene's shaft (its mouth at the driver's default ``fixture_position``) and
+welds the gear to the hand, built by the same builders as our MuJoCo scenes so the numbers agree;
+franky-sim's own geoms touch neither. ``--gear-load`` also gives the gear to franky-sim's gravity
+compensation as the end-effector load, as Desk's settings do on a real arm.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import socket
+import subprocess
+import sys
+import time
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nf_bringup.processes import ros_env, stop_process
+
+HOST = "127.0.0.1"
+PORT = 1337  # libfranka's command port
+READY = "Connect to the server"  # franky-sim's line once it serves
+
+
+def port_busy(host: str = HOST, port: int = PORT) -> bool:
+    """True when something already listens on the robot port (another simulator)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.settimeout(0.2)
+        return s.connect_ex((host, port)) == 0
+
+
+class FrankySim:
+    """franky-sim as a child process (context manager), its output in ``log_path``; ``frictionless``,
+    ``gear`` and ``gear_load`` start this module's launcher with those options instead of
+    ``franky-sim -s mujoco``."""
+
+    def __init__(self, log_path: Path, timeout: float = 60.0, frictionless: bool = False,
+                 gear: bool = False, gear_load: bool = False) -> None:
+        if port_busy():
+            raise RuntimeError(f"{HOST}:{PORT} is taken: another robot simulator runs on this machine")
+        if gear_load and not gear:
+            raise ValueError("gear_load needs gear")
+        self.log_path = log_path
+        self.frictionless = frictionless
+        self.gear = gear
+        flags = [f for f, on in (("--frictionless", frictionless), ("--gear", gear), ("--gear-load", gear_load)) if on]
+        if flags:
+            cmd = [sys.executable, "-m", "nf_bringup.testing.franky", *flags]
+        else:
+            cmd = [str(Path(sys.executable).parent / "franky-sim"), "-s", "mujoco", "--hostname", HOST]
+        self._log = open(log_path, "w")  # closed in stop
+        # ros_env for the package sources on PYTHONPATH; franky-sim itself speaks no DDS
+        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, env=ros_env(None))
+        deadline = time.monotonic() + timeout
+        while READY not in log_path.read_text():
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                self.stop()
+                raise RuntimeError(f"{' '.join(cmd)} did not start:\n{log_path.read_text()}")
+            time.sleep(0.1)
+
+    @property
+    def pid(self) -> int:
+        """The simulator's PID."""
+        return self.proc.pid
+
+    def stop(self) -> None:
+        """SIGINT (its clean shutdown), then SIGKILL, by PID."""
+        stop_process(self.proc, 5.0)
+        self._log.close()
+
+    def __enter__(self) -> FrankySim:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+ARM_JOINTS = tuple(f"fr3_joint{i}" for i in range(1, 8))  # franky-sim prefixes them with "robot<i>_"
+
+
+def arm_joints(scene: ET.Element) -> list[ET.Element]:
+    """The ``<joint>`` elements of the arm (seven per robot) in an MJCF scene, in order."""
+    found = [j for j in scene.iter("joint") if j.get("name", "").endswith(ARM_JOINTS)]
+    if not found or len(found) % len(ARM_JOINTS):
+        raise RuntimeError(f"expected 7 arm joints per robot in franky-sim's scene, found "
+                           f"{[j.get('name') for j in found]}")
+    return found
+
+
+def remove_arm_friction(scene: ET.Element) -> list[str]:
+    """Set ``frictionloss="0"`` on every arm joint of the scene (overrides the class default of
+    joints 1-4 and the values of 5-7); returns the joint names changed."""
+    joints = arm_joints(scene)
+    for joint in joints:
+        joint.set("frictionloss", "0")
+    return [j.get("name", "") for j in joints]
+
+
+ROBOT_PREFIX = "robot0_"  # franky-sim's prefix of its first (only) robot
+HAND_BODY = ROBOT_PREFIX + "hand"  # MuJoCo body of the FR3 hand = the description's fr3_hand frame
+BASE_BODY = ROBOT_PREFIX + "base"
+GEAR_BODY = "gear"  # names of our scenes (unique in franky-sim's scene)
+SHAFT_BODY = "shaft"
+PIN_GEOM = "shaft_pin"
+
+
+def default_fixture_mouth() -> np.ndarray:
+    """The driver's default ``fixture_position`` (m, robot base frame): where ``--gear`` puts the
+    shaft's top face."""
+    from franka_driver.loop import DriverConfig
+
+    return DriverConfig().fixture_position.copy()
+
+
+def gear_task_elements(mouth_in_world: np.ndarray) -> tuple[ET.Element, ET.Element]:
+    """(gear body for the hand, shaft body for the world) as MJCF elements, built by our gear
+    scene's own builders and moved so the pin's top face is at ``mouth_in_world``."""
+    import mujoco
+
+    from sim_bridge_node import scenes
+    from sim_bridge_node.held_parts import add_gear
+
+    spec = mujoco.MjSpec()
+    hand = spec.worldbody.add_body()
+    hand.name = "hand"
+    part = add_gear(hand)
+    for geom in spec.body(part.body).geoms:  # as the gear scene does for the held part
+        if geom.contype:
+            scenes.contact_params(geom)
+    scenes.add_shaft(spec)  # base block, shoulder, pin; top face at FIXTURE_TOP over FIXTURE_XY
+    root = ET.fromstring(spec.to_xml())
+    gear = root.find(f".//body[@name='{part.body}']")
+    shaft = root.find(f".//body[@name='{SHAFT_BODY}']")
+    if gear is None or shaft is None:
+        raise RuntimeError("the gear scene's builders made no gear or shaft body")
+    gear.set("childclass", "main")  # not franky-sim's "fr3" class defaults (site group etc.)
+    shift = np.asarray(mouth_in_world, float) - np.array([*scenes.FIXTURE_XY, scenes.FIXTURE_TOP])
+    pos = np.fromstring(shaft.get("pos", "0 0 0"), sep=" ") + shift
+    shaft.set("pos", " ".join(f"{v:.6g}" for v in pos))
+    return gear, shaft
+
+
+def add_gear_task(sim: Any, mouth_in_base: np.ndarray) -> None:
+    """Weld the gear to franky-sim's FR3 hand and put the shaft with its mouth at ``mouth_in_base``
+    (robot0's base frame) into the scene, before it is compiled."""
+    bodies = {b.get("name"): b for b in sim.worldbody.iter("body")}
+    if HAND_BODY not in bodies or BASE_BODY not in bodies:
+        raise RuntimeError(f"franky-sim's scene has no {HAND_BODY!r} or {BASE_BODY!r} body")
+    base = bodies[BASE_BODY]
+    if base.get("quat") or base.get("euler") or base.get("axisangle"):
+        raise RuntimeError(f"{BASE_BODY} is turned in the world; the fixture placement assumes it is not")
+    base_pos = np.fromstring(base.get("pos", "0 0 0"), sep=" ")
+    gear, shaft = gear_task_elements(base_pos + np.asarray(mouth_in_base, float))
+    bodies[HAND_BODY].append(gear)
+    sim.worldbody.append(shaft)
+    option = sim.scene.find("option")
+    if option is None:
+        option = ET.SubElement(sim.scene, "option")
+    ET.SubElement(option, "flag", multiccd="disable")  # as scenes.py does for its own scenes
+
+
+def configure_gear_load(robot: Any) -> tuple[float, np.ndarray]:
+    """Tell franky-sim's dynamics model (its gravity compensation) about the gear as the robot's
+    end-effector load: mass, centre of mass in the flange frame, inertia (column-major). Returns
+    (mass, centre of mass in the flange frame)."""
+    from nf_core.panda_spec import GEAR_PART
+
+    c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
+    flange_R_hand = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # hand = flange turned -45 deg
+    com = flange_R_hand @ GEAR_PART.com_in_hand
+    inertia = flange_R_hand @ GEAR_PART.inertia @ flange_R_hand.T
+    robot.set_load(float(GEAR_PART.mass), tuple(com), tuple(inertia.flatten(order="F")))
+    return float(GEAR_PART.mass), com
+
+
+def gear_report(model: Any, data: Any) -> str:
+    """The compiled gear task: fixture mouth (base frame and world), the gear's body, mass, TCP."""
+    import mujoco
+
+    from nf_core.panda_spec import GEAR_PART
+
+    def body(name: str) -> int:
+        return mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+
+    pin = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, PIN_GEOM)
+    mouth = data.geom_xpos[pin] + data.geom_xmat[pin].reshape(3, 3)[:, 2] * model.geom_size[pin, 1]
+    base = data.xpos[body(BASE_BODY)]
+    hand, gear = body(HAND_BODY), body(GEAR_BODY)
+    site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, GEAR_PART.tcp_site)
+    R = data.xmat[hand].reshape(3, 3)
+    tcp_in_hand = R.T @ (data.site_xpos[site] - data.xpos[hand])
+    com_in_hand = R.T @ (data.xipos[gear] - data.xpos[hand])
+    parent = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(model.body_parentid[gear]))
+
+    def fmt(v: np.ndarray) -> str:
+        return "[" + ", ".join(f"{x:.4f}" for x in v) + "]"
+
+    return (f"gear fixture: mouth {fmt(mouth - base)} m in {BASE_BODY}'s frame ({fmt(mouth)} world); "
+            f"gear attached to {parent}: mass {model.body_mass[gear]:.3f} kg, COM {fmt(com_in_hand)} m and "
+            f"TCP {fmt(tcp_in_hand)} m in the hand frame")
+
+
+def add_robot(sim: Any, frictionless: bool, gear: bool = False) -> Any:
+    """Add franky-sim's one FR3 to an initialized ``MujocoSimulator`` (as its CLI does) and, when
+    ``frictionless``, zero the arm joints' ``frictionloss`` in the scene before it is compiled;
+    when ``gear``, add the gear task (``add_gear_task``) at the driver's default fixture position."""
+    robot = sim.add_robot()
+    if frictionless:
+        remove_arm_friction(sim.scene)
+    if gear:
+        add_gear_task(sim, default_fixture_mouth())
+    return robot
+
+
+def joint_frictionloss(model: Any, names: list[str]) -> list[float]:
+    """The compiled model's ``dof_frictionloss`` (Nm) of the named joints."""
+    import mujoco
+
+    return [float(model.dof_frictionloss[model.jnt_dofadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, n)]])
+            for n in names]
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m nf_bringup.testing.franky``: serve franky-sim's FR3 until interrupted."""
+    parser = argparse.ArgumentParser(prog="python -m nf_bringup.testing.franky",
+                                     description=__doc__.split("\n\n")[0])
+    parser.add_argument("--frictionless", action="store_true",
+                        help="zero the arm joints' frictionloss (the only change to franky-sim's FR3)")
+    parser.add_argument("--gear", action="store_true",
+                        help="add the gear task's shaft (mouth at the driver's default fixture_position) "
+                             "and weld the gear to the hand")
+    parser.add_argument("--gear-load", action="store_true",
+                        help="with --gear: configure the gear as the robot's end-effector load, so "
+                             "franky-sim's gravity compensation includes it")
+    args = parser.parse_args(argv)
+    if args.gear_load and not args.gear:
+        parser.error("--gear-load needs --gear")
+
+    import franky_sim
+    from franky_sim.mujoco_simulator import MujocoSimulator
+
+    # as franky-sim's console script: warnings only, numba quiet
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s - %(levelname)s - %(message)s")
+    logging.getLogger("numba").setLevel(logging.WARNING)
+
+    changes = [c for c, on in (("arm joints without friction", args.frictionless), ("gear task", args.gear),
+                               ("gear as end-effector load", args.gear_load)) if on]
+    print(f"Starting Mujoco simulation server without visualization"
+          f"{' (' + ', '.join(changes) + ')' if changes else ''}", flush=True)
+    with MujocoSimulator(enable_visualization=False) as sim:
+        robot = add_robot(sim, args.frictionless, args.gear)
+        if args.gear_load:
+            mass, com = configure_gear_load(robot)
+            print(f"end-effector load: {mass:.3f} kg at {com.round(4).tolist()} m in the flange frame", flush=True)
+        with franky_sim.SimulationServer(sim, hostname_candidates=[HOST]) as server:
+            names = [j.get("name", "") for j in arm_joints(sim.scene)]
+            values = joint_frictionloss(sim.model, names)
+            report = ", ".join(f"{n} {v:.3f}" for n, v in zip(names, values, strict=True))
+            print(f"arm joint frictionloss (Nm): {report}", flush=True)
+            if args.gear:
+                print(gear_report(sim.model, sim.data), flush=True)
+            print(f"{READY} using '{robot.hostname}' as the robot IP address", flush=True)
+            try:
+                server.run_forever()
+            except KeyboardInterrupt:
+                print("\nShutting down server...", flush=True)
+
+
+if __name__ == "__main__":
+    main()
