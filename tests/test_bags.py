@@ -27,10 +27,12 @@ from rosbags.rosbag2 import Reader as Rosbag2Reader
 from sensor_msgs.msg import JointState
 from test_bags_latched import bag_domain_id
 
+from nf_core import qos
+from nf_core.topics import POLICY_PARAMETERS
 from sim_bridge_node.env import InsertionEnv
 
 from ros_testing import REPO, RosProcess
-from test_nodes import LATCHED, RELIABLE, Probe, diag_values, policy_msg
+from test_nodes import RELIABLE, Probe, diag_values, policy_msg
 
 pytestmark = pytest.mark.ros
 
@@ -72,11 +74,12 @@ def episode_bag(tmp_path_factory):
     ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "-p", "idle_mode:=pause",
                       "-p", "max_consecutive_misses:=0"], domain, tmp / "controller.log")
     out = {"bag": bag, "tmp": tmp}
+    # early: Fast DDS drops a response to a reader the server has not matched within 100 ms
+    client = ActionClient(probe.node, RunEpisode, "run_episode")
     try:
         policy = policy_msg(InsertionEnv("gear").goal_position, version=7)
-        probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", LATCHED).publish(policy)
+        probe.node.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, qos.POLICY).publish(policy)
         wait_recording(rec, probe, STACK_TOPICS, 30)
-        client = ActionClient(probe.node, RunEpisode, "run_episode")
         assert client.wait_for_server(timeout_sec=20)
         sent = client.send_goal_async(RunEpisode.Goal(policy_version=7, seed=3, noise_seed=5,
                                                       duration=EPISODE_SECONDS))
@@ -185,12 +188,26 @@ def test_recorded_episode_resimulates_to_1e_9(episode_bag):
     print(f"re-simulation: {r.steps} steps, max |q| error {r.max_q_error:.1e} rad, |dq| {r.max_dq_error:.1e} rad/s")
 
 
-# The timing half measures when the recorder *receives* each message. In one fresh-clone CI run
-# (2026-12-03) delivery stalled once for 1.09 s after message 17 of 51 and the rest came in late
-# (offsets 1.09 s falling to 0.74 s) although the player publishes on an absolute schedule; the
-# same test passed in the two CI runs and the make test run before it. One rerun is the margin for
-# such a stall; the 50 ms bound stays.
-@pytest.mark.flaky(reruns=1)
+def timed_replay_offsets(bag, tmp_path, attempt: int) -> np.ndarray:
+    """Replay /task_status at twice the recorded speed into a recorder: each message's arrival
+    minus its due time (both from the first message), in s."""
+    domain = bag_domain_id()
+    timed = tmp_path / f"timed{attempt}"
+    rec = RosProcess(["-m", "nf_bags.record", "-o", str(timed), "--topics", "/task_status"], domain,
+                     tmp_path / f"rec_timed{attempt}.log")
+    try:
+        play = RosProcess(["-m", "nf_bags.play", str(bag), "--rate", "2", "--wait", "10", "--topics", "/task_status"],
+                          domain, tmp_path / f"play_timed{attempt}.log")
+        assert play.proc.wait(60) == 0, play.log()
+        time.sleep(0.3)
+    finally:
+        assert rec.stop() == 0, rec.log()
+    t_orig = np.array([r.log_time for r in bagfile.iter_raw(bag, ["/task_status"])]) * 1e-9
+    t_play = np.array([r.log_time for r in bagfile.iter_raw(timed)]) * 1e-9
+    assert len(t_play) == len(t_orig)
+    return (t_play - t_play[0]) - (t_orig - t_orig[0]) / 2.0
+
+
 def test_replay_gives_a_second_recorder_the_same_bytes(episode_bag, tmp_path):
     bag = episode_bag["bag"]
     topics = ["/rollouts", "/policy_parameters", "/task_status", "/joint_states"]
@@ -213,23 +230,17 @@ def test_replay_gives_a_second_recorder_the_same_bytes(episode_bag, tmp_path):
     for topic in topics:
         assert replayed[topic] == original[topic], (topic, len(replayed[topic]), len(original[topic]), play.log())
 
-    # recorded timing, at twice the speed: task_status arrives over half the recorded span
-    domain = bag_domain_id()
-    timed = tmp_path / "timed"
-    rec = RosProcess(["-m", "nf_bags.record", "-o", str(timed), "--topics", "/task_status"], domain,
-                     tmp_path / "rec2.log")
-    try:
-        play = RosProcess(["-m", "nf_bags.play", str(bag), "--rate", "2", "--wait", "10", "--topics", "/task_status"],
-                          domain, tmp_path / "play2.log")
-        assert play.proc.wait(60) == 0, play.log()
-        time.sleep(0.3)
-    finally:
-        assert rec.stop() == 0, rec.log()
-    t_orig = np.array([r.log_time for r in bagfile.iter_raw(bag, ["/task_status"])]) * 1e-9
-    t_play = np.array([r.log_time for r in bagfile.iter_raw(timed)]) * 1e-9
-    assert len(t_play) == len(t_orig)
-    offsets = (t_play - t_play[0]) - (t_orig - t_orig[0]) / 2.0
-    assert np.abs(offsets).max() < 0.05, f"replay timing off by up to {np.abs(offsets).max():.3f} s"
+    # recorded timing, at twice the speed: task_status arrives over half the recorded span. The
+    # player reads ahead, so a late message is the machine's stall (a busy 2-core machine can keep
+    # either process off the CPU for longer than the bound); a player off its schedule misses it in
+    # every replay, so up to three replays are measured and one must hold the bound.
+    worst = []
+    for attempt in range(3):
+        offsets = np.abs(timed_replay_offsets(bag, tmp_path, attempt))
+        worst.append((round(float(offsets.max()), 3), int(offsets.argmax())))
+        if offsets.max() < 0.05:
+            break
+    assert worst[-1][0] < 0.05, f"replay timing off in every replay (s, at message): {worst}"
 
 
 def test_recorder_killed_with_sigkill_leaves_complete_chunks_readable(tmp_path):
@@ -244,7 +255,7 @@ def test_recorder_killed_with_sigkill_leaves_complete_chunks_readable(tmp_path):
     ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "-p", "idle_mode:=policy"], domain,
                      tmp_path / "controller.log")
     try:
-        probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", LATCHED).publish(
+        probe.node.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, qos.POLICY).publish(
             policy_msg(np.array([0.45, 0.0, 0.35])))
         wait_recording(rec, probe, ["/joint_states", "/effort_controller/commands"], 30)
         # at least 2.3 s (3 closed chunks of 0.5 s) and 1,200 states: a busy machine steps the

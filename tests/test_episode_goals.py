@@ -15,8 +15,11 @@ from nf_msgs.action import RunEpisode
 from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
 from rclpy.action import ActionClient
 
+from nf_core import qos
+from nf_core.topics import POLICY_PARAMETERS
+
 from ros_testing import RosProcess, allocate_domain_id
-from test_nodes import LATCHED, Probe, policy_msg
+from test_nodes import Probe, policy_msg
 
 pytestmark = pytest.mark.ros
 
@@ -55,7 +58,7 @@ def test_goals_that_cannot_start_end_with_the_reason(tmp_path):
         status, result = _result(probe, handle, 10)
         assert status == GoalStatus.STATUS_CANCELED and result.message == "canceled", result.message
         # the policy arrives, but the reset service does not exist: aborted after the service wait
-        pub = probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", LATCHED)
+        pub = probe.node.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, qos.POLICY)
         pub.publish(policy_msg(np.array([0.5, 0.0, 0.3]), version=9))
         status, result = _result(probe, _send(probe, client, 9), 30)
         assert status == GoalStatus.STATUS_ABORTED

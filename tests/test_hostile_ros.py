@@ -24,10 +24,12 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from nf_controller_node.torque_law import TorqueLawConfig
+from nf_core import qos
 from nf_core.panda_spec import JOINT_NAMES, TORQUE_LIMITS
+from nf_core.topics import POLICY_PARAMETERS
 
 from ros_testing import RosProcess, allocate_domain_id
-from test_nodes import LATCHED, RELIABLE, SIM, Probe, diag_values, policy_msg
+from test_nodes import RELIABLE, SIM, Probe, diag_values, policy_msg
 
 pytestmark = pytest.mark.ros
 
@@ -157,7 +159,7 @@ def test_flood_of_bad_messages_keeps_every_command_safe_and_every_fault_clearabl
     try:
         assert probe.spin_until(lambda: "recording /effort_controller/commands (" in rec.log(), 60.0), rec.log()
         assert probe.spin_until(lambda: len(tasks) > 0, 30.0), logs()
-        policy_pub = probe.node.create_publisher(PolicyParametersMsg, "/policy_parameters", LATCHED)
+        policy_pub = probe.node.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, qos.POLICY)
         x_ref = tasks[-1][1]
         policy_pub.publish(policy_msg(x_ref))
         assert probe.spin_until(lambda: any(s.policy_version == 7 and s.mode == ControllerStatus.MODE_IDLE

@@ -11,10 +11,12 @@ be acknowledged.
 from __future__ import annotations
 
 import argparse
+import queue
 import signal
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +26,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from .bagfile import BagError, iter_raw, load_metadata
+from .bagfile import BagError, RawMessage, iter_raw, load_metadata
 from .record import message_class
 
 
@@ -48,6 +50,56 @@ def recorded_qos(bag: str | Path, depth: int = 1000) -> dict[str, QoSProfile]:
     return out
 
 
+READ_AHEAD = 1000  # messages decoded ahead of the replay (rosbag2 player's default queue)
+
+
+def read_ahead(messages: Iterator[RawMessage], stop: threading.Event, depth: int = READ_AHEAD) -> Iterator[RawMessage]:
+    """``messages``, read and decompressed by a thread up to ``depth`` ahead: a timed replay then never
+    waits at a chunk boundary while its next message is due (as rosbag2's player reads ahead)."""
+    items: queue.Queue = queue.Queue(maxsize=depth)
+    end = object()
+    done = threading.Event()  # the consumer left: the reader stops too
+
+    def put(item: object) -> bool:
+        while not (done.is_set() or stop.is_set()):
+            try:
+                items.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def reader() -> None:
+        try:
+            for raw in messages:
+                if not put(raw):
+                    return
+            put(end)
+        except BaseException as exc:  # handed to the consumer, raised there
+            put(exc)
+
+    thread = threading.Thread(target=reader, name="bag-read-ahead", daemon=True)
+    thread.start()  # now, not at the first next(): it reads while the caller waits for subscribers
+
+    def consume() -> Iterator[RawMessage]:
+        try:
+            while not stop.is_set():
+                try:
+                    item = items.get(timeout=0.1)
+                except queue.Empty:
+                    continue
+                if item is end:
+                    return
+                if isinstance(item, BaseException):
+                    raise item
+                yield item
+        finally:
+            done.set()
+            thread.join(timeout=1.0)
+
+    return consume()
+
+
 def play(node: Any, bag: str | Path, rate: float | None, topics: list[str] | None, wait: float,
          stop: threading.Event) -> int:
     """Publish the bag's messages with ``node``; ``rate`` None = as fast as possible. Returns the count."""
@@ -68,6 +120,7 @@ def play(node: Any, bag: str | Path, rate: float | None, topics: list[str] | Non
     for topic, cls in classes.items():
         profile = qos.get(topic, QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
         publishers[topic] = node.create_publisher(cls, topic, profile)
+    messages = read_ahead(iter_raw(bag, wanted), stop)  # reads while the subscribers match
     deadline = time.monotonic() + wait
     while time.monotonic() < deadline and not stop.is_set():
         if all(p.get_subscription_count() > 0 for p in publishers.values()):
@@ -77,7 +130,7 @@ def play(node: Any, bag: str | Path, rate: float | None, topics: list[str] | Non
     count = 0
     t_wall = time.monotonic()
     t_bag: int | None = None
-    for raw in iter_raw(bag, wanted):
+    for raw in messages:
         if stop.is_set():
             break
         if rate is not None:
