@@ -204,8 +204,7 @@ def test_learner_goal_parameter_reaches_the_published_policy_over_dds(tmp_path):
 def test_learner_killed_mid_iteration_holds_the_arm_and_resumes_without_losing_an_iteration(tmp_path):
     domain = allocate_domain_id()
     # The kill must land inside iteration 2, so an iteration has to outlast the probe's reaction on a
-    # busy machine: with 8 rollouts of 0.5 s the composed stack ran one in 0.37 s and a fresh-clone CI
-    # run killed the learner after iteration 2 had finished. 32 rollouts take several seconds.
+    # busy machine: 32 rollouts take several seconds (8 can finish before the probe reacts).
     settings = {**SHORT, "rollouts_per_iter": 32}
     probe = Probe(domain)
     status = probe.collect(ControllerStatus, "controller_status", RELIABLE)
@@ -261,8 +260,8 @@ def test_controller_unchanged_against_a_hardware_like_driver(tmp_path):
     # matched (100 ms), so the client's result reader must be known long before the goal is sent
     client = ActionClient(probe.node, RunEpisode, "run_episode")
     driver = RosProcess([str(REPO / "tests" / "peers" / "hw_driver.py")], domain, tmp_path / "driver.log")
-    # Timing safety stays on, but loose: this shared, non-realtime machine can stall a process for
-    # tens of ms (a CI run once saw no state for 528 ms), and a latched hold would stop the arm for
+    # Timing safety stays on, but loose: a shared, non-realtime machine can stall a process for
+    # hundreds of ms, and a latched hold would stop the arm for
     # the rest of the test. Latching on stale states and on runs of misses is tested in
     # test_nodes_core.
     ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "-p", "gravity_compensation:=false",

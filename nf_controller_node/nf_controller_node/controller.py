@@ -184,7 +184,7 @@ class FlowController:
         if not self.law.gravity_compensation:
             # The driver compensates gravity (a Franka): the arm gets no command of ours before the
             # first one, so the rate limit starts from zero; NaN would let a restarted controller's
-            # first command jump (3.9 Nm in 1 ms was seen against a hardware-like driver).
+            # first command jump past the rate limit.
             self.tau_prev[:] = 0.0
         self.set_evaluator(evaluator)
 

@@ -1,7 +1,7 @@
 """ROS-free core of one RL episode: held noise, the per-decision record, the reward, and the
 rollout cut into chunks. The one episode core of the project: the controller runs it over ROS
 (``ControlLoop``, driven by the sim bridge or the Franka driver), the trainer's in-process rollouts
-(``learner_node.rollout``) and the decision-at-a-time view (``learner_node.decision_env``) run it
+(``learner_node.rollout``) and the decision-at-a-time view (``learner_node.analysis.decision_env``) run it
 in process.
 
 The controller consumes one joint state per millisecond. An episode of K decisions of P

@@ -25,10 +25,9 @@ DQ_MAX = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])  # rad/s
 # latches the safe hold on the last valid state. The position margin covers the simulator's soft
 # joint limits and encoder offsets; the velocity factor leaves room for what the simulator (which
 # does not enforce velocity limits) really does, while refusing readings no arm produces (the
-# datasheet limits are 2.175 / 2.61 rad/s; enforcing them is the robot's own reflex). Measured in
-# simulation: 1.5 x latched the hold on a valid state (joint 7 at 3.93 rad/s after a reset in the
-# lockstep node test), 3 x on the gear with explored gains (joint 4 at -6.56 rad/s), which ended
-# the learning run. 10 x still refuses garbage (1e6 rad/s, a wrong unit) at once.
+# datasheet limits are 2.175 / 2.61 rad/s; enforcing them is the robot's own reflex). Smaller
+# factors refuse valid simulated states (fast joints after a reset or with explored gains); 10 x
+# still refuses garbage (1e6 rad/s, a wrong unit) at once.
 Q_PLAUSIBLE_MARGIN = float(np.deg2rad(5.0))  # rad beyond the datasheet joint limits
 DQ_PLAUSIBLE_FACTOR = 10.0  # x DQ_MAX
 Q_PLAUSIBLE_MIN = Q_MIN - Q_PLAUSIBLE_MARGIN  # rad

@@ -2,7 +2,7 @@
 
 Shared by the in-process rollouts (``learner_node.rollout``) and the controller node, which
 computes the same numbers when it streams a rollout over ROS. Reward of one decision, from the
-state at the end of its period (DESIGN section 2)::
+state at the end of its period (the paper's reward, Khader et al., ICRA 2021)::
 
     r = -w |d|^2 - v ln((|d|^2 + a) / a) - c_v |xdot|^2 - c_u |action|^2,   d = x - x_goal
 """
