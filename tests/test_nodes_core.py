@@ -389,3 +389,22 @@ def test_config_node_sections_match_declared_parameters(task):
         for key, value in doc.get(section, {}).get("ros__parameters", {}).items():
             assert key in declared, f"{task}.yaml: {section}.{key} is not a parameter of the node"
             assert type(value) is type(declared[key][0]), f"{task}.yaml: {section}.{key} has type {type(value)}"
+
+
+def test_loop_rate_limit_starts_from_the_applied_torque(arm):
+    loop = _loop(arm)
+    applied = np.array([5.0, -20.0, 3.0, 10.0, 1.0, -2.0, 0.5])
+    order = list(reversed(NAMES))  # the driver's own name order
+    assert loop.start_from_applied(order, applied[::-1].tolist()) == ""
+    tau, _ = _Feed(loop)()
+    step = loop.controller.law.max_step
+    assert np.all(np.abs(tau - applied) <= step + 1e-9), tau  # the first command ramps from the arm's torque
+    assert loop.start_from_applied(NAMES, applied.tolist()) == "the controller has commanded already"
+
+
+@pytest.mark.parametrize("effort, why", [([], "no effort"), ([1.0] * 6, "not usable"),
+                                         ([float("nan")] + [0.0] * 6, "not finite"), ([500.0] + [0.0] * 6, "limits")])
+def test_loop_refuses_an_unusable_applied_torque(arm, effort, why):
+    loop = _loop(arm)
+    assert why in loop.start_from_applied(NAMES, effort)
+    assert np.all(np.isnan(loop.controller.tau_prev))  # unprimed, as without a report

@@ -404,6 +404,26 @@ class ControlLoop:
         self.task_success = bool(success)
         return ""
 
+    def start_from_applied(self, names: Sequence[str], effort: Sequence[float]) -> str:
+        """Start the torque rate limit from the torque the arm is applying (``effort`` of the driver's
+        first joint state, Nm, in the state's name order), not from nothing: a controller restarted
+        under a running driver then ramps from the command the arm still holds. Only before the
+        first command; an effort that is missing, of the wrong size, not finite or beyond the torque
+        limits is not used (the reason is returned; "" when used)."""
+        if self.steps:
+            return "the controller has commanded already"
+        if len(effort) == 0:
+            return "the driver reports no effort"
+        try:
+            tau, _ = self.joints.map(names, effort, effort)
+        except JointStateError as exc:
+            return f"effort not usable: {exc}"
+        limits = self.controller.law.torque_limits
+        if not (np.all(np.isfinite(tau)) and np.all(np.abs(tau) <= limits)):
+            return f"effort not finite or beyond the torque limits: {np.round(tau, 3).tolist()}"
+        self.controller.reset_rate_limit(tau.copy())
+        return ""
+
     # ------------------------------------------------------------------ the 1 kHz step
     def on_joint_state(self, names: Sequence[str], position: Sequence[float], velocity: Sequence[float],
                        stamp_ns: int, now: float) -> tuple[np.ndarray, str]:

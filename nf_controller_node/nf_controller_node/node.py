@@ -200,6 +200,7 @@ class NFControllerNode(Node):
         self._goal = None
         self._resetting = False
         self._unanswered: JointState | None = None  # the last state left unanswered (see _release_states)
+        self._rate_start_checked = False  # see _on_joint_state
         self._setup: _Setup | None = None  # the goal being set up (see _on_accepted)
         self._setup_timer = None
         self._result: RunEpisode.Result | None = None  # of the goal that ended, for _report
@@ -237,6 +238,11 @@ class NFControllerNode(Node):
         stamp_ns = stamp.sec * 1_000_000_000 + stamp.nanosec
         host, loop = self.host, self.loop
         host.service()
+        if not loop.steps and not self._rate_start_checked:
+            self._rate_start_checked = True  # once: the first state after start-up
+            why = loop.start_from_applied(msg.name, msg.effort)
+            self.get_logger().info("torque rate limit starts from the applied torque the driver reports"
+                                   if not why else f"torque rate limit starts unprimed: {why}")
         if not loop.answers(stamp_ns):
             self._unanswered = msg  # answered when the episode starts, if it is the reset state
             return

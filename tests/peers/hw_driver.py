@@ -1,7 +1,8 @@
 """A minimal "hardware-like" arm driver for tests: a MuJoCo Panda stepped by a 1 kHz wall-clock
 timer that speaks only the two ros2_control topics (``joint_states`` out, joint names in a
 different order than the controller's; ``effort_controller/commands`` in) and adds gravity
-itself, as Franka's driver does. No reset service, no task status, no stamp handshake.
+itself, as Franka's driver does; ``effort`` reports the command it applies. No reset service, no
+task status, no stamp handshake.
 
 Run: python tests/peers/hw_driver.py   (stops on SIGINT)
 """
@@ -55,6 +56,7 @@ class HardwareLikeDriver(Node):
         msg.name = self.names
         msg.position = env.q[ORDER].tolist()
         msg.velocity = env.dq[ORDER].tolist()
+        msg.effort = self.command[ORDER].tolist()  # the command it applies (its own gravity not included)
         self.pub.publish(msg)
 
     def _gravity(self) -> np.ndarray:

@@ -1,0 +1,65 @@
+"""A standalone controller restarted under a running driver ramps from the torque the arm is
+applying (the driver's ``effort``), within the torque rate limit from its first command on."""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import numpy as np
+from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from nf_controller_node.arm_model import ArmModel
+from nf_controller_node.control_loop import JointMap
+from nf_core import panda_spec, qos
+from nf_core.topics import POLICY_PARAMETERS
+
+from ros_testing import REPO, RosProcess, allocate_domain_id
+from test_nodes import RELIABLE, Probe, policy_msg
+
+MAX_STEP = panda_spec.TORQUE_RATE_LIMIT * 1e-3  # Nm per 1 ms command
+CONTROLLER = ["-m", "nf_controller_node.node", "--ros-args", "-p", "gravity_compensation:=false",
+              "-p", "reset_service:=''", "-p", "state_timeout:=2.0", "-p", "max_consecutive_misses:=500"]
+
+
+def test_restarted_controller_starts_from_the_applied_torque(tmp_path):
+    domain = allocate_domain_id()
+    probe = Probe(domain)
+    joints = JointMap(panda_spec.JOINT_NAMES)
+    arm = ArmModel()
+    states = probe.collect(JointState, "joint_states", RELIABLE,
+                           convert=lambda m: (*joints.map(m.name, m.position, m.velocity),
+                                              joints.map(m.name, m.effort, m.effort)[0]))
+    commands = probe.collect(Float64MultiArray, "effort_controller/commands", RELIABLE,
+                             convert=lambda m: np.array(m.data))
+    driver = RosProcess([str(REPO / "tests" / "peers" / "hw_driver.py")], domain, tmp_path / "driver.log")
+    first = RosProcess([*CONTROLLER, "-p", "idle_mode:=policy"], domain, tmp_path / "first.log")
+    second = None
+    try:
+        assert probe.spin_until(lambda: len(states) > 100, 30), driver.log()
+        x0 = arm.tcp_position(states[-1][1][0])
+        pub = probe.node.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, qos.POLICY)
+        pub.publish(policy_msg(x0 + np.array([0.08, 0.0, -0.08]), version=3, stiffness=400.0, damping=40.0))
+        # the first controller pulls the arm towards a goal 11 cm away: wait until it commands several Nm
+        assert probe.spin_until(lambda: commands and np.abs(commands[-1][1]).max() > 3.0, 60), first.log()
+        first.proc.send_signal(signal.SIGKILL)
+        first.proc.wait(10)
+        killed = time.monotonic()
+        probe.spin_for(0.2)
+        held = states[-1][1][2]  # what the driver applies now: the dead controller's last command
+        assert np.abs(held).max() > 2.0, f"the driver applies only {held}: nothing to ramp from"
+        second = RosProcess([*CONTROLLER, "-p", "idle_mode:=hold"], domain, tmp_path / "second.log")
+        assert probe.spin_until(lambda: commands and commands[-1][0] > killed + 0.2, 60), second.log()
+        t_first, tau_first = next((t, c) for t, c in commands if t > killed + 0.2)
+        applied = [e for t, (_, _, e) in states if t < t_first][-1]  # the last effort reported before it
+        step = np.abs(tau_first - applied)
+        assert step.max() <= MAX_STEP + 1e-6, (f"first command {np.round(tau_first, 3)} steps {np.round(step, 3)} Nm "
+                                               f"from the applied {np.round(applied, 3)}\n{second.log()}")
+        assert "starts from the applied torque" in second.log()
+    finally:
+        for proc in (second, first, driver):
+            if proc is not None:
+                proc.stop()
+        probe.close()
