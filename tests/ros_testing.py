@@ -23,8 +23,8 @@ class RosProcess(processes.RosProcess):
     """``processes.RosProcess`` with the tests folder importable too."""
 
     def __init__(self, args: Sequence[str], domain_id: int, log_path: Path | None = None, prefix: Sequence[str] = (),
-                 **extra: str) -> None:
-        super().__init__(args, domain_id, log_path, prefix, paths=(TESTS,), **extra)
+                 peers: Sequence[str] = (), **extra: str) -> None:
+        super().__init__(args, domain_id, log_path, prefix, paths=(TESTS,), peers=peers, **extra)
 
 
 def thread_policies(pid: int) -> dict[int, int]:

@@ -54,14 +54,19 @@ def allocate_domain_id() -> int:
 
 
 def isolate(env: MutableMapping[str, str], domain_id: int | None, sources: bool = True,
-            paths: Sequence[str | Path] = ()) -> MutableMapping[str, str]:
+            paths: Sequence[str | Path] = (), peers: Sequence[str] = ()) -> MutableMapping[str, str]:
     """Set ``env`` (a copy, or ``os.environ`` before this process starts ROS) for a ROS process:
-    ``domain_id`` (None: keep the one it has), discovery on loopback only, UDP transport,
-    unbuffered output; ``paths`` and (``sources``) the package sources first on PYTHONPATH."""
+    ``domain_id`` (None: keep the one it has), discovery on loopback only (or, with ``peers``, over
+    the subnet to those unicast addresses: hosts of a fleet), UDP transport, unbuffered output;
+    ``paths`` and (``sources``) the package sources first on PYTHONPATH."""
     if domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(domain_id)
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env.pop("ROS_STATIC_PEERS", None)
+    if peers:
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"
+        env["ROS_STATIC_PEERS"] = ";".join(peers)
+    else:
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        env.pop("ROS_STATIC_PEERS", None)
     env["FASTDDS_BUILTIN_TRANSPORTS"] = TRANSPORTS
     env["PYTHONUNBUFFERED"] = "1"
     front = [str(p) for p in paths] + (source_paths() if sources else [])
@@ -71,10 +76,10 @@ def isolate(env: MutableMapping[str, str], domain_id: int | None, sources: bool 
 
 
 def ros_env(domain_id: int | None, sources: bool = True, paths: Sequence[str | Path] = (),
-            **extra: str) -> dict[str, str]:
+            peers: Sequence[str] = (), **extra: str) -> dict[str, str]:
     """This process's environment for a ROS child (``isolate``), then ``extra`` variables on top."""
     env = dict(os.environ)
-    isolate(env, domain_id, sources, paths)
+    isolate(env, domain_id, sources, paths, peers)
     env.update(extra)
     return env
 
@@ -96,14 +101,17 @@ def stop_process(proc: subprocess.Popen, timeout: float = 10.0,
 
 class RosProcess:
     """``python <args>`` in ROS domain ``domain_id`` (``ros_env``), output in ``log_path`` (none:
-    discarded); stopped by PID. ``prefix``: a command that execs Python in its place (same PID);
-    ``paths``: folders put first on its PYTHONPATH; ``extra``: more environment variables."""
+    discarded); stopped by PID. ``prefix``: a command that execs Python in its place (same PID, e.g.
+    ``ip netns exec <host>``); ``paths``: folders put first on its PYTHONPATH; ``peers``: discover
+    over the subnet with these unicast peers; ``extra``: more environment variables."""
 
     def __init__(self, args: Sequence[str], domain_id: int, log_path: Path | None = None,
-                 prefix: Sequence[str] = (), paths: Sequence[str | Path] = (), **extra: str) -> None:
+                 prefix: Sequence[str] = (), paths: Sequence[str | Path] = (), peers: Sequence[str] = (),
+                 **extra: str) -> None:
         self.log_path = log_path
         self._out = open(log_path, "w") if log_path else None  # closed in stop
-        self.proc = subprocess.Popen([*prefix, sys.executable, *args], env=ros_env(domain_id, paths=paths, **extra),
+        env = ros_env(domain_id, paths=paths, peers=peers, **extra)
+        self.proc = subprocess.Popen([*prefix, sys.executable, *args], env=env,
                                      stdout=self._out or subprocess.DEVNULL, stderr=subprocess.STDOUT)
 
     @property

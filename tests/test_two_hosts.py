@@ -1,0 +1,44 @@
+"""Learner on one machine, arm on another: two network namespaces joined by a veth pair stand in
+for two hosts; DDS discovers over the subnet with static unicast peers, as a user configures two
+machines. The learning equals the in-process trainer's, as on one host."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from test_learning_over_ros import CONFIG, SHORT, assert_same_learning, in_process_history
+
+from nf_bringup.testing.hosts import NetnsUnavailableError, TwoHosts
+
+from ros_testing import RosProcess, allocate_domain_id
+
+
+@pytest.fixture
+def hosts():
+    try:
+        with TwoHosts() as two:
+            yield two
+    except NetnsUnavailableError as exc:
+        pytest.skip(f"no network namespaces on this machine: {exc}")
+
+
+def test_learner_and_arm_on_two_hosts_learn_as_on_one(tmp_path, hosts):
+    domain = allocate_domain_id()
+    arm = RosProcess(["-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", CONFIG,
+                      "-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0"],
+                     domain, tmp_path / "arm.log", prefix=hosts.prefix("b"), peers=hosts.peers("b"))
+    args = ["-m", "learner_node.node", "--ros-args", "--params-file", CONFIG, "-p", "learner_node:on_safe_hold:=auto",
+            "-p", f"learner_node:out_dir:={tmp_path / 'run'}", "-p", "learner_node:iterations:=2"]
+    for key, value in SHORT.items():
+        args += ["-p", f"learner_node:{key}:={value}" if key != "episode_seconds" else f"{key}:={value}"]
+    learner = RosProcess(args, domain, tmp_path / "learner.log", prefix=hosts.prefix("a"), peers=hosts.peers("a"))
+    try:
+        learner.proc.wait(240)
+        assert learner.proc.returncode == 0, learner.log() + arm.log()
+    finally:
+        learner.stop()
+        arm.stop()
+    over_two_hosts = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert all(r["dropped_episodes"] == 0 for r in over_two_hosts)
+    assert_same_learning(over_two_hosts, in_process_history(2, SHORT))
