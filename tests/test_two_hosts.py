@@ -42,3 +42,19 @@ def test_learner_and_arm_on_two_hosts_learn_as_on_one(tmp_path, hosts):
     over_two_hosts = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert all(r["dropped_episodes"] == 0 for r in over_two_hosts)
     assert_same_learning(over_two_hosts, in_process_history(2, SHORT))
+
+
+def test_without_peers_the_hosts_do_not_find_each_other(tmp_path, hosts):
+    """The control: loopback-only discovery (the default) does not cross to the other host."""
+    domain = allocate_domain_id()
+    arm = RosProcess(["-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", CONFIG], domain,
+                     tmp_path / "arm.log", prefix=hosts.prefix("b"))
+    learner = RosProcess(["-m", "learner_node.node", "--ros-args", "--params-file", CONFIG,
+                          "-p", "learner_node:server_timeout:=5.0", "-p", f"learner_node:out_dir:={tmp_path / 'run'}"],
+                         domain, tmp_path / "learner.log", prefix=hosts.prefix("a"))
+    try:
+        learner.proc.wait(120)
+        assert learner.proc.returncode == 1 and "no run_episode action server" in learner.log(), learner.log()
+    finally:
+        learner.stop()
+        arm.stop()
