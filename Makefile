@@ -2,7 +2,7 @@
 SHELL := /bin/bash
 ENV := source ./env.sh
 
-.PHONY: setup test lint bench bench-deps run clean
+.PHONY: setup test lint bench bench-deps run run-franka clean
 
 setup:  ## create .venv, install pinned packages, build ros2_ws, write env.sh (idempotent)
 	@scripts/setup.sh
@@ -31,6 +31,9 @@ bench-deps: setup
 
 run: setup  ## the whole stack learning the gear from a failing prior in simulation (composed, lockstep, 30 iterations, ~5 min); ARGS="--iterations 10" etc.
 	@$(ENV) && python -m nf_bringup.stack --config config/gear_learn.yaml $(ARGS)
+
+run-franka: setup  ## learning on the robot path: franky-sim's FR3 with the gear cell behind libfranka (20 iterations, ~35 min); ARGS="--robot <FCI address> --goal X Y Z" for a real arm
+	@$(ENV) && python -m nf_bringup.robot_run $(ARGS)
 
 clean:  ## remove build products (keeps .venv)
 	rm -rf ros2_ws/build ros2_ws/install ros2_ws/log ros2_ws/.build.sha256 env.sh

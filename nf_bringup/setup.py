@@ -26,6 +26,7 @@ setup(
             "nf_sim_stack = nf_bringup.sim_stack:main",
             "nf_franka_stack = nf_bringup.franka_stack:main",
             "run_stack = nf_bringup.stack:main",
+            "run_robot = nf_bringup.robot_run:main",
         ],
     },
 )

@@ -13,7 +13,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import MutableMapping, Sequence
+from collections.abc import Callable, MutableMapping, Sequence
 from pathlib import Path
 from typing import IO
 
@@ -146,8 +146,9 @@ class ManagedProcess:
     forwarded, kept in ``log_dir/<name>.log`` and watched for the ``watch`` texts."""
 
     def __init__(self, name: str, argv: Sequence[str], env: dict[str, str], log_dir: Path, echo: bool = True,
-                 watch: Sequence[str] = ()) -> None:
+                 watch: Sequence[str] = (), on_line: Callable[[str], None] | None = None) -> None:
         self.name = name
+        self._on_line = on_line  # called with each output line (on the forwarding thread)
         self.argv = list(argv)
         log_dir.mkdir(parents=True, exist_ok=True)
         self.log_path = log_dir / f"{name}.log"
@@ -172,6 +173,8 @@ class ManagedProcess:
             if self._echo:
                 sys.stdout.write(f"[{self.name}] {line}" if not line.startswith("[learner]") else line)
                 sys.stdout.flush()
+            if self._on_line is not None:
+                self._on_line(line)
 
     def wait_for_watched(self, timeout: float, alive: Sequence[ManagedProcess] = (),
                          texts: Sequence[str] | None = None) -> list[str]:

@@ -7,13 +7,17 @@ import json
 from pathlib import Path
 
 
-def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | None, composed: bool = True) -> Path:
-    """``summary.md``: settings, learning progress, evaluation, timings and the files of the run."""
+def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | None, composed: bool = True,
+                  how: str | None = None) -> Path:
+    """``summary.md``: settings, learning progress, evaluation, timings and the files of the run;
+    ``how``: what ran the episodes (default: the lockstep simulation, composed or not)."""
     learner = run_dir / "learner"
     metrics = json.loads((learner / "metrics.json").read_text()) if (learner / "metrics.json").exists() else []
     cfg = json.loads((learner / "config.json").read_text()) if (learner / "config.json").exists() else {}
-    how = "sim and controller composed in one process" if composed else "sim and controller as two processes"
-    lines = [f"# Run {run_dir.name}", "", f"Stack run with `{config}` over ROS 2 (lockstep simulation, {how}), "
+    if how is None:
+        how = "lockstep simulation, " + ("sim and controller composed in one process" if composed
+                                         else "sim and controller as two processes")
+    lines = [f"# Run {run_dir.name}", "", f"Stack run with `{config}` over ROS 2 ({how}), "
              f"{wall / 60:.1f} min wall time, learner exit code {exit_code}.", ""]
     if cfg:
         lines += [f"Task **{cfg.get('task')}**, policy {cfg.get('policy')}-PPO, sigma_init {cfg.get('sigma_init')} N, "

@@ -1,0 +1,179 @@
+"""``run_robot`` (``make run-franka``): learning on the robot path in one command, as ``make run`` is
+in simulation. The Franka stack (``nf_franka_stack``: libfranka's torque loop hosting the flow
+controller), the bag recorder and the learner, with the cell's goal given once, leave the same run
+folder as ``make run`` (learner files, summary.md, learning_curves.png, bag/, logs/).
+
+    run_robot --robot franky                    # franky-sim's FR3 with our gear cell, on 127.0.0.1
+    run_robot --robot 172.16.0.2 --goal X Y Z   # a real FR3 / Panda: its FCI address, the measured goal
+
+With ``franky`` it starts the simulator first (``nf_bringup.testing.franky --gear --gear-load``, the
+shaft's mouth at the driver's default fixture position; goal [0.5, 0, 0.05]) and lets the driver
+recover reflexes by itself; on a real arm a reflex or a safe hold waits for a person (the learner
+says so and goes on once ``clear_fault`` is called). Ctrl-C stops everything cleanly; the same
+``--out`` again resumes from the checkpoint. Each iteration prints the time left.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import re
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import yaml
+
+from .processes import ManagedProcess, allocate_domain_id, ros_env
+from .run_summary import plot_curves, write_summary
+from .stack import POLICY_READY, RECORDER_READY, wait_for_recorder
+
+FRANKY = "franky"
+FRANKY_GOAL = (0.5, 0.0, 0.05)  # the gear cell's goal on franky-sim: 2 cm below the shaft's mouth (0.07 m)
+DEFAULT_ITERATIONS = 20  # about 100 s each on franky-sim (15 x 5 s episodes and the reset motions)
+HARDWARE_CONFIG = Path("config/franka.yaml")
+_ITERATION = re.compile(r"iteration\s+(\d+)/(\d+)")
+_ROLLOUTS = re.compile(r"rollouts\s+([\d.]+) s")
+
+
+class Progress:
+    """Time left from the learner's iteration lines (its own timing of the whole iteration)."""
+
+    def __init__(self, out=sys.stdout) -> None:
+        self.out = out
+        self.t_last: float | None = None
+        self.durations: list[float] = []
+
+    def __call__(self, line: str) -> None:
+        """One line of the learner's output."""
+        m = _ITERATION.search(line)
+        if not m or "return" not in line:
+            return
+        now = time.monotonic()
+        if self.t_last is not None:
+            self.durations.append(now - self.t_last)
+        self.t_last = now
+        done, total = int(m.group(1)), int(m.group(2))
+        first = _ROLLOUTS.search(line)  # before two lines give a wall time: the learner's rollout time
+        per = sorted(self.durations)[len(self.durations) // 2] if self.durations else \
+            (float(first.group(1)) if first else None)
+        if per is not None and done < total:
+            left = (total - done) * per
+            self.out.write(f"[run] iteration {done}/{total}: {per:.0f} s per iteration, about {left / 60:.0f} min "
+                           "left (then the final evaluation)\n")
+            self.out.flush()
+
+
+def robot_commands(args: argparse.Namespace, run_dir: Path, record: bool) -> dict[str, list[str]]:
+    """The argv of the Franka stack, the learner and (``record``) the recorder."""
+    py = sys.executable
+    goal = "[" + ",".join(repr(float(v)) for v in args.goal) + "]"  # floats: a ROS list of one type
+    franky = args.robot == FRANKY
+    arm = [py, "-m", "nf_bringup.franka_stack", "--ros-args", "--params-file", str(args.hardware_config),
+           "-p", f"franka_driver:robot_ip:={'127.0.0.1' if franky else args.robot}",
+           "-p", f"franka_driver:goal:={goal}"]
+    if franky:  # a simulator: any kernel, and reflexes recovered without a person
+        arm += ["-p", "franka_driver:realtime:=ignore", "-p", "franka_driver:automatic_error_recovery:=true"]
+    learner = [py, "-m", "learner_node.node", "--ros-args", "--params-file", str(args.config),
+               "-p", f"learner_node:goal:={goal}", "-p", f"learner_node:out_dir:={run_dir / 'learner'}",
+               "-p", f"learner_node:iterations:={args.iterations}",
+               "-p", f"learner_node:on_safe_hold:={'auto' if franky else 'wait'}",
+               "-p", f"learner_node:policy_subscribers:={2 if record else 1}", *args.learner_arg]
+    cmds = {"arm": arm, "learner": learner}
+    if record:
+        cmds["recorder"] = [py, "-m", "nf_bags.record", "-o", str(run_dir / "bag")]
+    return cmds
+
+
+def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="run_robot", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--robot", default=FRANKY,
+                        help="'franky' (franky-sim with the gear cell, started here) or the robot's FCI address")
+    parser.add_argument("--goal", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                        help="the insertion goal in the robot's base frame, m (franky: 0.5 0 0.05; a real cell: "
+                             "measure it)")
+    parser.add_argument("--config", type=Path, default=Path("config/gear_learn.yaml"), help="the task file")
+    parser.add_argument("--hardware-config", type=Path, default=HARDWARE_CONFIG, help="the Franka stack's file")
+    parser.add_argument("--iterations", type=int, default=DEFAULT_ITERATIONS, help="PPO iterations")
+    parser.add_argument("--out", type=Path, default=None, help="run folder (default runs/robot-<date-time>)")
+    parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: from the environment)")
+    parser.add_argument("--learner-arg", action="append", default=[], metavar="ARG",
+                        help="extra ROS argument for the learner, e.g. -p learner_node:rollouts_per_iter:=5")
+    args = parser.parse_args(argv)
+    for path in (args.config, args.hardware_config):
+        if not path.exists():
+            parser.error(f"no such parameters file: {path}")
+        yaml.safe_load(path.read_text())  # a broken file fails here, before anything moves
+    if args.iterations < 1:
+        parser.error("--iterations must be >= 1")
+    if args.goal is None:
+        if args.robot != FRANKY:
+            parser.error("a real arm needs --goal X Y Z: the insertion goal measured on its cell")
+        args.goal = list(FRANKY_GOAL)
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script ``run_robot``."""
+    args = _parse(argv)
+    run_dir = args.out or Path("runs") / time.strftime("robot-%Y%m%d-%H%M%S")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    domain_id = args.domain_id if args.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID")
+                                                                      or allocate_domain_id())
+    env = ros_env(domain_id, sources=False)
+    franky = args.robot == FRANKY
+    record = importlib.util.find_spec("nf_bags") is not None
+    cmds = robot_commands(args, run_dir, record)
+    print(f"[run] run folder {run_dir}, ROS_DOMAIN_ID {domain_id} (loopback only); robot "
+          f"{'franky-sim (gear cell)' if franky else args.robot}, goal {args.goal}; {args.iterations} iterations; "
+          "Ctrl-C stops cleanly, the same --out resumes", flush=True)
+    sim = None
+    procs: dict[str, ManagedProcess] = {}
+    t0 = time.monotonic()
+    code: int | None = None
+    interrupted = False
+    try:
+        if franky:
+            from .testing.franky import FrankySim
+
+            (run_dir / "logs").mkdir(parents=True, exist_ok=True)
+            sim = FrankySim(run_dir / "logs" / "franky-sim.log", gear=True, gear_load=True)
+            print("[run] franky-sim up on 127.0.0.1 (FR3, gear cell)", flush=True)
+        if record:
+            procs["recorder"] = ManagedProcess("recorder", cmds["recorder"], env, run_dir / "logs",
+                                               watch=(*RECORDER_READY, POLICY_READY))
+        procs["arm"] = ManagedProcess("arm", cmds["arm"], env, run_dir / "logs")
+        if record:
+            wait_for_recorder(procs["recorder"], [procs["arm"]])
+        if procs["arm"].running():
+            procs["learner"] = ManagedProcess("learner", cmds["learner"], env, run_dir / "logs", on_line=Progress())
+            while procs["learner"].running() and procs["arm"].running():
+                time.sleep(0.2)
+            if not procs["arm"].running():
+                print(f"[run] the Franka stack exited (see {run_dir / 'logs' / 'arm.log'}); stopping", flush=True)
+        else:
+            print(f"[run] the Franka stack did not start (see {run_dir / 'logs' / 'arm.log'})", flush=True)
+    except KeyboardInterrupt:
+        interrupted = True
+        print("[run] interrupted: stopping the nodes (the arm holds, then the torque loop ends)", flush=True)
+    finally:
+        if "learner" in procs:
+            code = procs["learner"].stop()
+        for name in ("arm", "recorder"):
+            if name in procs:
+                procs[name].stop()
+        if sim is not None:
+            sim.stop()
+    wall = time.monotonic() - t0
+    plot_curves(run_dir / "learner" / "metrics.json", run_dir / "learning_curves.png",
+                f"NF-PPO on the robot path: {'franky-sim' if franky else args.robot}")
+    summary = write_summary(run_dir, args.config, wall, code,
+                            how=f"the Franka stack on {'franky-sim' if franky else args.robot}, real time")
+    print(f"[run] done in {wall / 60:.1f} min; summary: {summary}", flush=True)
+    return 130 if interrupted else (code if code is not None else 1)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
