@@ -385,7 +385,9 @@ def test_config_node_sections_match_declared_parameters(task):
 
     doc = yaml.safe_load((Path(__file__).parents[1] / "config" / f"{task}.yaml").read_text())
     assert doc["/**"]["ros__parameters"]["task"] in TASKS
-    for section, declared in (("sim_bridge", sim_node.PARAMETERS), ("nf_controller", controller_node.PARAMETERS)):
+    # sections named /**/<node>: they apply to the node in any namespace (an arm of many)
+    sections = (("/**/sim_bridge", sim_node.PARAMETERS), ("/**/nf_controller", controller_node.PARAMETERS))
+    for section, declared in sections:
         for key, value in doc.get(section, {}).get("ros__parameters", {}).items():
             assert key in declared, f"{task}.yaml: {section}.{key} is not a parameter of the node"
             assert type(value) is type(declared[key][0]), f"{task}.yaml: {section}.{key} has type {type(value)}"

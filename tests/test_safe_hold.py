@@ -198,7 +198,7 @@ DQ_FAULT = np.array([0.5, -0.3, 0.4, 0.4, -0.5, 0.5, 0.6])  # rad/s at the fault
 
 def _franka_hold() -> tuple[float, float]:
     """hold_stiffness, hold_damping of config/franka.yaml (the values a real arm brakes with)."""
-    section = yaml.safe_load((REPO / "config" / "franka.yaml").read_text())["nf_controller"]["ros__parameters"]
+    section = yaml.safe_load((REPO / "config" / "franka.yaml").read_text())["/**/nf_controller"]["ros__parameters"]
     return float(section["hold_stiffness"]), float(section["hold_damping"])
 
 

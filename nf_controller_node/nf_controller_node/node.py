@@ -407,7 +407,7 @@ class NFControllerNode(Node):
             return (f"controller has policy version {loop.policy_version}, the episode asks for "
                     f"{goal.policy_version} (waited {p['policy_wait']:.0f} s)")
         if loop.fault:
-            return f"safe hold: {loop.fault} (call {self.get_name()}/clear_fault)"
+            return f"safe hold: {loop.fault} (call {self.get_fully_qualified_name()}/clear_fault)"
         params = loop.policy
         sigma = None
         if not goal.deterministic:

@@ -15,7 +15,7 @@ COMMANDS = "effort_controller/commands"  # std_msgs/Float64MultiArray (JointGrou
 CLOCK = "clock"  # rosgraph_msgs/Clock, lockstep simulated time
 TASK_STATUS = "task_status"  # nf_msgs/TaskStatus (simulation only)
 CONTROLLER_STATUS = "controller_status"  # nf_msgs/ControllerStatus
-POLICY_PARAMETERS = "/policy_parameters"  # nf_msgs/PolicyParameters, one learner for every arm
+POLICY_PARAMETERS = "policy_parameters"  # nf_msgs/PolicyParameters, relative: each arm its own
 DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray
 ROLLOUTS = "rollouts"  # nf_msgs/RolloutChunk, controller -> learner
 
