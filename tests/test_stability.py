@@ -79,18 +79,22 @@ def test_large_weights_never_raise_V():
             assert r["V"][-1] < r["V"][0]
 
 
+PANDA_STARTS = 25  # per flow: 500 closed-loop arm runs, the suite's largest single cost
+
+
 def _chunks():
-    starts = list(range(N_STARTS))
+    starts = list(range(PANDA_STARTS))
     return [(seed, scale, starts) for seed, scale in FLOWS]
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # CPU-bound on both cores: slow, not stuck, when the machine is shared
 def test_panda_free_space_converges_and_V_never_rises():
     from panda_loop import run_flow
 
     with _pool() as pool:
         results = [r for chunk in pool.map(run_flow, _chunks()) for r in chunk]
-    assert len(results) == len(FLOWS) * N_STARTS
+    assert len(results) == len(FLOWS) * PANDA_STARTS
     bad = [r for r in results if r["distance"] > 1e-3 or r["fault"] or r["nan_torque"]
            or r["max_rise"] > 1e-6 * r["V0"] + 1e-9]
     worst = max(results, key=lambda r: r["distance"])
