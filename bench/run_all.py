@@ -3,7 +3,7 @@
 Each benchmark writes bench/results/<name>.json; this prints a one-line summary per target.
 Usage: python bench/run_all.py [--quick]   (the realtime benchmark alone takes about 27 minutes: 10
 composed and 10 over topics, plus its shorter phases; the Franka driver's 10; --quick: about 4 minutes
-and 30 s)
+and 30 s; the many-arms scaling, bench_arms.py, about 15 minutes more, --quick 2)
 """
 
 from __future__ import annotations
@@ -103,10 +103,21 @@ def _trace_line(trace: dict) -> str:
             f"(overlapping: {top} ms)")
 
 
+def _arms_line(arms: dict) -> str:
+    rt, ls = arms["realtime"], arms["lockstep"]
+    parts = [f"N={n}: iteration {v['iteration_wall_s_median']:.1f} s ({v['iteration_wall_ratio_to_1']:.2f}x), "
+             f"{v['arm_cpu_cores_median']:.2f} cores per arm" for n, v in rt.items()]
+    steps = ", ".join(f"N={n} {v['steps_per_s_median']:.0f} ({v['steps_per_s_ratio_to_1']:.2f}x)"
+                      for n, v in ls.items())
+    return (f"   many arms, realtime ({arms['rollouts']} rollouts of {arms['episode_seconds']:g} s): {'; '.join(parts)}"
+            f"\n   many arms, lockstep steps/s summed: {steps}\n   {arms['where_cores_run_out']}")
+
+
 # (name, script, one-line summary of its JSON): run in this order after the ROS-free benchmarks
 _ROS_BENCHMARKS = (("bags", "bench_bags.py", _bags_line), ("stack", "bench_stack.py", _stack_line),
                    ("ros_iteration_trace", "trace_ros_iteration.py", _trace_line),
-                   ("realtime", "bench_realtime.py", _realtime_line), ("franka", "bench_franka.py", _franka_line))
+                   ("realtime", "bench_realtime.py", _realtime_line), ("franka", "bench_franka.py", _franka_line),
+                   ("arms", "bench_arms.py", _arms_line))
 
 
 def main() -> int:

@@ -1,5 +1,6 @@
 """``python -m nf_bags.info BAG [--json] [--repair [--output DIR]]``: topics, counts, files, chunks of a
-bag; after a recorder crash or damage, what is readable, what was skipped and how much was lost
+bag, and the arms whose topics it holds (namespaces, ``/`` for an arm without one);
+after a recorder crash or damage, what is readable, what was skipped and how much was lost
 (``--repair`` writes a repaired copy that every rosbag2 reader opens; the original is never
 changed). No ROS needed.
 
@@ -16,6 +17,7 @@ import sys
 from typing import Any
 
 from .bagfile import BagError, BagScan, repair, scan
+from .topics import arm_of, arms_of
 
 
 def as_json(result: BagScan) -> dict[str, Any]:
@@ -23,6 +25,7 @@ def as_json(result: BagScan) -> dict[str, Any]:
     window = result.loss_window()
     return {
         "state": result.state, "closed": result.closed, "counts": dict(result.counts),
+        "arms": arms_of(result.counts),
         "metadata_counts": result.metadata_counts, "lost": result.lost,
         "lost_seconds_known": window[0] if window else 0.0, "loss_bound": result.loss_bound(),
         "damage": result.problems(),
@@ -33,6 +36,18 @@ def as_json(result: BagScan) -> dict[str, Any]:
                                "messages_lost": d.messages_lost, "suspect_messages": d.suspect_messages}
                               for d in f.damage]} for f in result.files],
     }
+
+
+def arms_line(result: BagScan) -> str:
+    """One line naming the arms in the bag with their topics' and messages' counts."""
+    found = arms_of(result.counts)
+    if not found:
+        return "arms: none (no arm topics)"
+    parts = []
+    for arm in found:
+        topics = [t for t in result.counts if arm_of(t) == arm]
+        parts.append(f"{arm} ({len(topics)} topics, {sum(result.counts[t] for t in topics)} messages)")
+    return f"arms: {len(found)}: " + ", ".join(parts)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -71,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(out, indent=1))
     else:
         print(result.report())
+        print(arms_line(result))
         if fixed is not None:
             print(fixed.report())
     if fixed is not None:

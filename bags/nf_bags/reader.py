@@ -4,6 +4,10 @@ learner's ``EpisodeRecord``), joint trajectories, an episode summary and a plot 
 Messages are decoded from the schema stored in the bag (``mcap_ros2``), so a bag opens on any
 machine with Python, no ROS install and no ``nf_msgs`` build needed. The decoded objects have the
 message's fields as attributes (``msg.header.stamp.sec``, ``chunk.reward``).
+
+A bag of many arms (``run_stack --arms N``) holds each arm's topics under its namespace
+(``/arm0/rollouts``, ..): ``arms`` lists them, ``arm_rollout_chunks`` groups rollouts by (arm,
+episode id), since two arms number their episodes independently and their ids collide.
 """
 
 from __future__ import annotations
@@ -20,13 +24,18 @@ import numpy as np
 from mcap_ros2.decoder import DecoderFactory
 
 from .bagfile import RawMessage, iter_raw
-
-JOINT_STATES = "/joint_states"
-COMMANDS = "/effort_controller/commands"
-TASK_STATUS = "/task_status"
-CONTROLLER_STATUS = "/controller_status"
-ROLLOUTS = "/rollouts"
-POLICY = "/policy_parameters"
+from .topics import (  # noqa: F401  (the topic names are part of the reader's interface)
+    ARM_TOPICS,
+    COMMANDS,
+    CONTROLLER_STATUS,
+    JOINT_STATES,
+    POLICY,
+    ROLLOUTS,
+    TASK_STATUS,
+    arm_of,
+    arm_topic,
+    arms_of,
+)
 
 
 @dataclass(frozen=True)
@@ -113,16 +122,34 @@ def same(a: Any, b: Any) -> bool:
 
 
 # ---------------------------------------------------------------------- rollouts
+def arms(bag: str | Path) -> list[str]:
+    """The arms recorded in ``bag`` (namespaces, "/" for an arm without one), from its topic names."""
+    from .bagfile import scan
+
+    return arms_of(scan(bag).counts)
+
+
 def rollout_chunks(bag: str | Path, topic: str = ROLLOUTS) -> dict[int, list[Any]]:
-    """All RolloutChunk messages grouped by episode id (in order of the episodes' first chunk)."""
+    """The RolloutChunk messages of one arm's ``topic`` (``arm_topic(arm, ROLLOUTS)``) grouped by episode
+    id (in order of the episodes' first chunk); ``arm_rollout_chunks`` for every arm of a bag."""
     episodes: dict[int, list[Any]] = defaultdict(list)
     for d in read_messages(bag, [topic]):
         episodes[int(d.msg.episode_id)].append(d.msg)
     return dict(episodes)
 
 
+def arm_rollout_chunks(bag: str | Path) -> dict[tuple[str, int], list[Any]]:
+    """Every arm's RolloutChunk messages grouped by (arm namespace, episode id), in order of the
+    episodes' first chunk: arms number their episodes independently, so an id alone is ambiguous."""
+    topics = {arm_topic(a, ROLLOUTS): a for a in arms(bag)}
+    episodes: dict[tuple[str, int], list[Any]] = defaultdict(list)
+    for d in read_messages(bag, list(topics)):
+        episodes[(topics[d.topic], int(d.msg.episode_id))].append(d.msg)
+    return dict(episodes)
+
+
 def episode_records(bag: str | Path, success_depth: float | None = None, task: str | None = None) -> list[Any]:
-    """The learner's ``EpisodeRecord`` of every complete episode in the bag (incomplete ones raise
+    """The learner's ``EpisodeRecord`` of every episode of every arm in the bag (incomplete ones raise
     ``learner_node.ros_episodes.IncompleteEpisodeError``). ``success_depth`` defaults to the task's."""
     from learner_node.ros_episodes import episode_from_chunks
 
@@ -130,12 +157,12 @@ def episode_records(bag: str | Path, success_depth: float | None = None, task: s
         from sim_bridge_node.scenes import build_scene
 
         success_depth = build_scene(task or recorded_task(bag) or "gear").success_depth
-    return [episode_from_chunks(chunks, success_depth=success_depth) for chunks in rollout_chunks(bag).values()]
+    return [episode_from_chunks(chunks, success_depth=success_depth) for chunks in arm_rollout_chunks(bag).values()]
 
 
 def recorded_task(bag: str | Path) -> str | None:
-    """The task named by the first TaskStatus in the bag (None without one)."""
-    for d in read_messages(bag, [TASK_STATUS]):
+    """The task named by the first TaskStatus in the bag, of any arm (None without one)."""
+    for d in read_messages(bag, [arm_topic(a, TASK_STATUS) for a in arms(bag)]):
         return str(d.msg.task)
     return None
 
@@ -214,29 +241,36 @@ def task_status(bag: str | Path) -> dict[str, np.ndarray]:
 
 # ---------------------------------------------------------------------- evaluation
 def summarize(bag: str | Path) -> dict[str, Any]:
-    """A run from its bag alone: topics and counts, simulated time, and per episode its policy
-    version, decisions, return, final insertion depth and success."""
+    """A run from its bag alone: topics and counts, the arms, simulated time (of the arm without a
+    namespace; per arm under ``per_arm``), and per episode its arm, policy version, decisions,
+    return, final insertion depth and success."""
     counts: dict[str, int] = defaultdict(int)
     for raw in iter_raw(bag):
         counts[raw.topic] += 1
-    out: dict[str, Any] = {"bag": str(bag), "counts": dict(counts)}
-    if counts.get(JOINT_STATES):
-        traj = joint_trajectory(bag)
-        out["sim_seconds"] = float((traj.stamp_ns[-1] - traj.stamp_ns[0]) * 1e-9)
-        out["states"] = len(traj.stamp_ns)
-        out["resets"] = len(traj.resets())
+    out: dict[str, Any] = {"bag": str(bag), "counts": dict(counts), "arms": arms_of(counts)}
+    per_arm: dict[str, dict[str, Any]] = {}
+    for arm in out["arms"]:
+        if counts.get(arm_topic(arm, JOINT_STATES)):
+            traj = joint_trajectory(bag, arm_topic(arm, JOINT_STATES))
+            per_arm[arm] = {"sim_seconds": float((traj.stamp_ns[-1] - traj.stamp_ns[0]) * 1e-9),
+                            "states": len(traj.stamp_ns), "resets": len(traj.resets())}
+    if "/" in per_arm:
+        out.update(per_arm["/"])
+    if set(per_arm) - {"/"}:
+        out["per_arm"] = per_arm
     episodes = []
-    for episode_id, chunks in rollout_chunks(bag).items():
+    for (arm, episode_id), chunks in arm_rollout_chunks(bag).items():
         chunks = sorted(chunks, key=lambda c: int(c.seq))
         reward = np.concatenate([np.asarray(c.reward, float) for c in chunks])
         depth = np.concatenate([np.asarray(c.insertion_depth, float) for c in chunks])
         complete = bool(chunks[-1].final) and [int(c.seq) for c in chunks] == list(range(int(chunks[-1].n_chunks)))
-        episodes.append({"episode_id": episode_id, "policy_version": int(chunks[0].policy_version),
+        episodes.append({"arm": arm, "episode_id": episode_id, "policy_version": int(chunks[0].policy_version),
                          "chunks": len(chunks), "complete": complete, "decisions": len(reward),
                          "return": float(reward.sum()), "final_depth": float(depth[-1]) if len(depth) else float("nan"),
                          "max_depth": float(np.nanmax(depth)) if np.isfinite(depth).any() else float("nan")})
     out["episodes"] = episodes
-    out["policy_versions"] = [int(p.version) for p in policies(bag)]
+    policy_topics = [arm_topic(a, POLICY) for a in out["arms"]]
+    out["policy_versions"] = [int(d.msg.version) for d in read_messages(bag, policy_topics)]
     return out
 
 

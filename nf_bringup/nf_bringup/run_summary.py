@@ -8,15 +8,18 @@ from pathlib import Path
 
 
 def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | None, composed: bool = True,
-                  how: str | None = None) -> Path:
+                  how: str | None = None, arms: int = 0) -> Path:
     """``summary.md``: settings, learning progress, evaluation, timings and the files of the run;
-    ``how``: what ran the episodes (default: the lockstep simulation, composed or not)."""
+    ``how``: what ran the episodes (default: the lockstep simulation, composed or not); ``arms``: how
+    many namespaced arms were started (0: one arm without a namespace)."""
     learner = run_dir / "learner"
     metrics = json.loads((learner / "metrics.json").read_text()) if (learner / "metrics.json").exists() else []
     cfg = json.loads((learner / "config.json").read_text()) if (learner / "config.json").exists() else {}
     if how is None:
         how = "lockstep simulation, " + ("sim and controller composed in one process" if composed
                                          else "sim and controller as two processes")
+        if arms:
+            how += f", {arms} arms under /arm0 .. /arm{arms - 1}"
     lines = [f"# Run {run_dir.name}", "", f"Stack run with `{config}` over ROS 2 ({how}), "
              f"{wall / 60:.1f} min wall time, learner exit code {exit_code}.", ""]
     if cfg:
@@ -33,6 +36,7 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
         lines.append("")
     else:
         lines += ["No iteration completed.", ""]
+    lines += arm_lines(learner / "arms.json", arms)
     evaluations = learner_evaluations(learner)
     if evaluations:
         lines += ["Deterministic controller on the held-out starts (no exploration):", "",
@@ -49,6 +53,29 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
     path = run_dir / "summary.md"
     path.write_text("\n".join(lines))
     return path
+
+
+def arm_lines(arms_json: Path, started: int = 0) -> list[str]:
+    """Lines for ``summary.md`` from the learner's ``arms.json``: how many arms ran rollouts and, per
+    arm, its rollouts done and its dispatches lost with the arm, failed (or in safe hold) and late
+    (each such rollout ran again elsewhere); nothing without the file."""
+    if not arms_json.exists():
+        return []
+    try:
+        per_arm: dict[str, dict[str, int]] = json.loads(arms_json.read_text()).get("arms", {})
+    except (OSError, ValueError) as exc:
+        return [f"`{arms_json.name}` could not be read: {exc}", ""]
+    reruns = sum(c.get("lost", 0) + c.get("failed", 0) + c.get("hold", 0) for c in per_arm.values())
+    lines = [f"{len(per_arm)} arm{'s' if len(per_arm) != 1 else ''} ran rollouts"
+             + (f" ({started} started)" if started else "") + f"; {reruns} dispatches ran again elsewhere "
+             "(`learner/arms.json` lists each).", ""]
+    if started or len(per_arm) > 1:
+        lines += ["| arm | rollouts | lost | failed or hold | late |", "|---|---|---|---|---|"]
+        for name, c in sorted(per_arm.items()):
+            failed = c.get("failed", 0) + c.get("hold", 0)
+            lines.append(f"| {name} | {c.get('done', 0)} | {c.get('lost', 0)} | {failed} | {c.get('late', 0)} |")
+        lines.append("")
+    return lines
 
 
 def learner_evaluations(learner: Path) -> list[tuple[str, dict]]:

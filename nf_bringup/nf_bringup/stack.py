@@ -12,6 +12,10 @@ leaves a run folder::
     runs/<time>/bag/       rosbag2 MCAP bag of the run (when the recorder is available)
     runs/<time>/learning_curves.png, final_policy.gif, summary.md, logs/<process>.log
 
+With ``--arms N`` it starts N composed lockstep arms under the namespaces ``/arm0`` .. ``/arm{N-1}``
+(process names ``arm0`` ..), the learner dispatches each iteration's rollouts to all of them, and the
+one recorder records every arm's topics. Without ``--arms``: one arm without a namespace.
+
 Every process runs in one ROS_DOMAIN_ID with discovery on loopback only (``processes.ros_env``).
 """
 
@@ -40,22 +44,55 @@ RECORDER_READY = tuple(f"recording {t} (" for t in RECORDED_BEFORE_LEARNING)  # 
 # without it cannot be re-simulated); checked after the learner starts, without holding it up.
 POLICY_READY = "recording /policy_parameters ("
 POLICY_WAIT_SECONDS = 60.0
+# ``-p nf_controller:x:=v`` matches only a node without a namespace, and a plain ``-p`` loses to the
+# config's ``/**/nf_controller`` section: namespaced arms get the lockstep settings in a second file
+# with that section (written into the run folder, after the config so it wins).
+ARM_PARAMS_FILE = "arm_params.yaml"
+LOCKSTEP_PARAMS = "/**/nf_controller:\n  ros__parameters:\n    idle_mode: pause\n    max_consecutive_misses: 0\n"
+
+
+def arm_namespaces(arms: int) -> list[str]:
+    """The namespaces of ``arms`` arms (0: the one arm without a namespace, "")."""
+    return [f"/arm{i}" for i in range(arms)] if arms > 0 else [""]
+
+
+def recorder_ready(namespaces: Sequence[str]) -> tuple[str, ...]:
+    """The recorder's lines to wait for before the learner starts: every arm's ``RECORDED_BEFORE_LEARNING``."""
+    return tuple(f"recording {ns}{t} (" for ns in namespaces for t in RECORDED_BEFORE_LEARNING)
+
+
+def policy_ready(namespaces: Sequence[str]) -> tuple[str, ...]:
+    """The recorder's lines that say it records every arm's policy topic."""
+    return tuple(f"recording {ns}/policy_parameters (" for ns in namespaces)
 RECORDER_WAIT_SECONDS = 120.0  # the controller's first start compiles its kernels (~15 s here)
 
 
 def node_commands(config: Path, run_dir: Path, iterations: int, extra: Sequence[str] = (),
-                  composed: bool = True) -> dict[str, list[str]]:
-    """The argv of every process of the stack, keyed by the name used in the log prefix."""
+                  composed: bool = True, arms: int = 0) -> dict[str, list[str]]:
+    """The argv of every process of the stack, keyed by the name used in the log prefix; ``arms`` > 0:
+    that many arms under ``/arm0`` .. (their lockstep settings in ``run_dir/ARM_PARAMS_FILE``, which
+    this writes)."""
     py = sys.executable
     params = ["--ros-args", "--params-file", str(config)]
     # lockstep: the sim waits for each command, so a slow step is no danger and must not latch the
     # safe hold (a busy machine would stop the run); between episodes the sim waits (pause)
     lockstep_controller = ["-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0"]
-    if composed:
-        cmds = {"arm": [py, "-m", "nf_bringup.sim_stack", *params, *lockstep_controller]}
-    else:
-        cmds = {"sim": [py, "-m", "sim_bridge_node.node", *params],
-                "controller": [py, "-m", "nf_controller_node.node", *params, *lockstep_controller]}
+    cmds: dict[str, list[str]] = {}
+    if arms > 0:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / ARM_PARAMS_FILE).write_text(LOCKSTEP_PARAMS)
+        lockstep_controller = ["--params-file", str(run_dir / ARM_PARAMS_FILE)]
+    for i, ns in enumerate(arm_namespaces(arms)):
+        remap = ["-r", f"__ns:={ns}"] if ns else []
+        name = f"arm{i}" if ns else "arm"
+        if composed:
+            cmds[name] = [py, "-m", "nf_bringup.sim_stack", *params, *lockstep_controller, *remap]
+        else:
+            cmds[f"{name}-sim" if ns else "sim"] = [py, "-m", "sim_bridge_node.node", *params, *remap]
+            cmds[f"{name}-controller" if ns else "controller"] = [
+                py, "-m", "nf_controller_node.node", *params, *lockstep_controller, *remap]
+    # the arms by name: the learner uses them from the first iteration (discovery would add them too)
+    listed = ["-p", "learner_node:arms:=[" + ",".join(f"'{ns}'" for ns in arm_namespaces(arms)) + "]"] if arms else []
     record = importlib.util.find_spec("nf_bags") is not None
     # with a recorder the first episode also waits for its policy subscription (it subscribes only
     # once it sees the learner's publisher), and the learner exits once both subscribers (the
@@ -65,7 +102,7 @@ def node_commands(config: Path, run_dir: Path, iterations: int, extra: Sequence[
         "learner": [py, "-m", "learner_node.node", *params, "-p", "learner_node:on_safe_hold:=auto",
                     "-p", f"learner_node:out_dir:={run_dir / 'learner'}",
                     "-p", f"learner_node:policy_subscribers:={2 if record else 1}",
-                    "-p", f"learner_node:iterations:={iterations}", *extra],
+                    "-p", f"learner_node:iterations:={iterations}", *listed, *extra],
     }
     if record:
         cmds["recorder"] = [py, "-m", "nf_bags.record", "-o", str(run_dir / "bag")]
@@ -73,11 +110,11 @@ def node_commands(config: Path, run_dir: Path, iterations: int, extra: Sequence[
 
 
 def wait_for_recorder(recorder: ManagedProcess, others: Sequence[ManagedProcess],
-                      timeout: float = RECORDER_WAIT_SECONDS) -> bool:
-    """Block until the recorder (started with ``watch=RECORDER_READY``) records ``RECORDED_BEFORE_LEARNING``;
-    False (with a warning that the bag may miss the first episodes) when it does not within ``timeout`` s
-    or a process exited."""
-    missing = recorder.wait_for_watched(timeout, others, texts=RECORDER_READY)
+                      timeout: float = RECORDER_WAIT_SECONDS, texts: Sequence[str] = RECORDER_READY) -> bool:
+    """Block until the recorder (started watching ``texts``: ``recorder_ready`` of the arms) records
+    every arm's ``RECORDED_BEFORE_LEARNING``; False (with a warning that the bag may miss the first
+    episodes) when it does not within ``timeout`` s or a process exited."""
+    missing = recorder.wait_for_watched(timeout, others, texts=texts)
     if missing:
         topics = ", ".join(m.split()[1] for m in missing)
         print(f"[stack] warning: the recorder is not recording {topics} after {timeout:.0f} s or a node exited; "
@@ -99,12 +136,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--separate", action="store_true",
                         help="run the sim and the controller as two processes over topics (slower; the path of "
                              "drivers that only speak ros2_control topics) instead of composed in one")
+    parser.add_argument("--arms", type=int, default=None, metavar="N",
+                        help="N arms under /arm0 .. /arm{N-1}, one learner dispatching to all (default: one arm "
+                             "without a namespace)")
     args = parser.parse_args(argv)
     if not args.config.exists():
         parser.error(f"no such parameters file: {args.config}")
     yaml.safe_load(args.config.read_text())  # a broken file fails here, before any process starts
     if args.iterations < 1:
         parser.error("--iterations must be >= 1")
+    if args.arms is not None and args.arms < 1:
+        parser.error("--arms must be >= 1")
+    args.arms = args.arms or 0
     run_dir = args.out or Path("runs") / time.strftime("%Y%m%d-%H%M%S")
     run_dir.mkdir(parents=True, exist_ok=True)
     domain_id = args.domain_id
@@ -113,10 +156,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     env = ros_env(domain_id, sources=False)  # the nodes run from the environment's packages (the install tree)
     print(f"[stack] run folder {run_dir}, ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']} (loopback only); "
           f"{args.iterations} iterations; Ctrl-C stops cleanly and keeps the checkpoint", flush=True)
-    cmds = node_commands(args.config, run_dir, args.iterations, args.learner_arg, composed=not args.separate)
-    arm = [n for n in ("arm", "sim", "controller") if n in cmds]
+    cmds = node_commands(args.config, run_dir, args.iterations, args.learner_arg, composed=not args.separate,
+                         arms=args.arms)
+    namespaces = arm_namespaces(args.arms)
+    ready, policy_lines = recorder_ready(namespaces), policy_ready(namespaces)
+    arm = [n for n in cmds if n not in ("learner", "recorder")]
     print(f"[stack] {'sim and controller as two processes' if args.separate else 'sim and controller composed'}: "
-          f"{', '.join(arm)}", flush=True)
+          f"{', '.join(arm)}" + (f" ({args.arms} arms: {', '.join(namespaces)})" if args.arms else ""), flush=True)
     procs: dict[str, ManagedProcess] = {}
     t0 = time.monotonic()
     code: int | None = None
@@ -125,15 +171,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name in ("recorder", *arm):
             if name in cmds:
                 procs[name] = ManagedProcess(name, cmds[name], env, run_dir / "logs",
-                                             watch=(*RECORDER_READY, POLICY_READY) if name == "recorder" else ())
+                                             watch=(*ready, *policy_lines) if name == "recorder" else ())
         if "recorder" in procs:
-            wait_for_recorder(procs["recorder"], [procs[n] for n in arm])
+            wait_for_recorder(procs["recorder"], [procs[n] for n in arm], texts=ready)
         dead = [n for n, p in procs.items() if not p.running()]
         if not dead:
             procs["learner"] = ManagedProcess("learner", cmds["learner"], env, run_dir / "logs")
-            if "recorder" in procs and procs["recorder"].wait_for_watched(
-                    POLICY_WAIT_SECONDS, [procs["learner"]], texts=(POLICY_READY,)):
-                print(f"[stack] warning: the recorder is not recording /policy_parameters {POLICY_WAIT_SECONDS:.0f} s "
+            missing = procs["recorder"].wait_for_watched(POLICY_WAIT_SECONDS, [procs["learner"]], texts=policy_lines) \
+                if "recorder" in procs else []
+            if missing:
+                topics = ", ".join(m.split()[1] for m in missing)
+                print(f"[stack] warning: the recorder is not recording {topics} {POLICY_WAIT_SECONDS:.0f} s "
                       "after the learner started: the bag may not hold the policies", flush=True)
         while not dead and procs["learner"].running():
             time.sleep(0.2)
@@ -158,7 +206,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             final_video(run_dir)
         except Exception as exc:  # a missing GL backend must not hide the run's results
             print(f"[stack] no video: {exc}", flush=True)
-    summary = write_summary(run_dir, args.config, wall, code, composed=not args.separate)
+    summary = write_summary(run_dir, args.config, wall, code, composed=not args.separate, arms=args.arms)
     print(f"[stack] done in {wall / 60:.1f} min; summary: {summary}", flush=True)
     return 130 if interrupted else (code or 0)
 
