@@ -139,6 +139,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--arms", type=int, default=None, metavar="N",
                         help="N arms under /arm0 .. /arm{N-1}, one learner dispatching to all (default: one arm "
                              "without a namespace)")
+    parser.add_argument("--live", action="store_true",
+                        help="also serve the live view of the fleet (fleet_view: Foxglove WebSocket on "
+                             "ws://127.0.0.1:8765)")
     args = parser.parse_args(argv)
     if not args.config.exists():
         parser.error(f"no such parameters file: {args.config}")
@@ -161,6 +164,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     namespaces = arm_namespaces(args.arms)
     ready, policy_lines = recorder_ready(namespaces), policy_ready(namespaces)
     arm = [n for n in cmds if n not in ("learner", "recorder")]
+    if args.live:  # a watcher only: nothing waits for it, and its exit stops nothing
+        cmds["view"] = [sys.executable, "-m", "nf_bringup.fleet_view", "--ros-args",
+                        "-p", f"run_dir:={run_dir / 'learner'}"]
     print(f"[stack] {'sim and controller as two processes' if args.separate else 'sim and controller composed'}: "
           f"{', '.join(arm)}" + (f" ({args.arms} arms: {', '.join(namespaces)})" if args.arms else ""), flush=True)
     procs: dict[str, ManagedProcess] = {}
@@ -172,9 +178,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             if name in cmds:
                 procs[name] = ManagedProcess(name, cmds[name], env, run_dir / "logs",
                                              watch=(*ready, *policy_lines) if name == "recorder" else ())
+        if "view" in cmds:
+            procs["view"] = ManagedProcess("view", cmds["view"], env, run_dir / "logs")
         if "recorder" in procs:
             wait_for_recorder(procs["recorder"], [procs[n] for n in arm], texts=ready)
-        dead = [n for n, p in procs.items() if not p.running()]
+        dead = [n for n, p in procs.items() if not p.running() and n != "view"]
         if not dead:
             procs["learner"] = ManagedProcess("learner", cmds["learner"], env, run_dir / "logs")
             missing = procs["recorder"].wait_for_watched(POLICY_WAIT_SECONDS, [procs["learner"]], texts=policy_lines) \
@@ -185,7 +193,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                       "after the learner started: the bag may not hold the policies", flush=True)
         while not dead and procs["learner"].running():
             time.sleep(0.2)
-            dead = [n for n, p in procs.items() if n != "learner" and not p.running()]
+            dead = [n for n, p in procs.items() if n not in ("learner", "view") and not p.running()]
         if dead:
             print(f"[stack] {', '.join(dead)} exited early (see {run_dir / 'logs'}); stopping", flush=True)
     except KeyboardInterrupt:
@@ -194,7 +202,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if "learner" in procs:
             code = procs["learner"].stop()
-        for name in (*reversed(arm), "recorder"):
+        for name in (*reversed(arm), "recorder", "view"):
             if name in procs:
                 procs[name].stop()
     wall = time.monotonic() - t0
