@@ -9,7 +9,14 @@ import torch
 
 from learner_node.analysis.exploration_stability import measure, summarize
 from learner_node.config import TrainConfig
-from learner_node.param_explore import ParamExploration, make_param_optimizer, paired_advantages, param_ppo_update
+from learner_node.flow import RealNVPFlow, init_flow_weights, output_layer_mask, rescale_flow_weights
+from learner_node.param_explore import (
+    ParamExploration,
+    follow_sigma,
+    make_param_optimizer,
+    paired_advantages,
+    param_ppo_update,
+)
 from learner_node.policy import NFPolicy
 from learner_node.trainer import CHECKPOINT, Trainer
 from nf_core.flow_spec import FlowArchitecture
@@ -108,3 +115,79 @@ def test_free_space_parameter_draws_never_raise_v_and_action_noise_does_work():
     assert summarize(params)["rising_fraction"] == 0.0
     assert all(r.gain <= 1e-3 for r in params)
     assert any(abs(r.work) > 1e-6 for r in noise)
+
+
+def test_normalised_flow_weights_are_the_same_bijection_in_metres():
+    """Physical weights from normalised ones: phi_p(x) = L phi_n'(x / L), the nets seeing (c - c_ref) / L."""
+    arch = FlowArchitecture(dim=3, n_flow=2, n_hidden=8, activation="gelu")
+    rng = np.random.default_rng(0)
+    wn = init_flow_weights(arch, rng)
+    x_ref, scale = np.array([0.5, 0.0, 0.07]), 0.05
+    wp = rescale_flow_weights(arch, wn, x_ref, scale)
+    np.testing.assert_allclose(rescale_flow_weights(arch, wp, x_ref, scale, inverse=True), wn, atol=1e-14)
+    x = x_ref + 0.1 * rng.standard_normal((6, 3))
+    a = RealNVPFlow(arch, wp)(torch.from_numpy(x)).detach().numpy()
+    b = scale * RealNVPFlow(arch, rescale_flow_weights(arch, wn, x_ref / scale, 1.0))(
+        torch.from_numpy(x / scale)).detach().numpy()
+    np.testing.assert_allclose(a, b, atol=1e-13)
+    mask = output_layer_mask(arch)
+    assert mask.sum() == 2 * 2 * (8 * 2 + 2 + 8 * 1 + 1)  # per element: s and t nets of both layers
+    np.testing.assert_array_equal(init_flow_weights(arch, rng, init="identity")[mask], 0.0)
+
+
+def test_output_layer_exploration_in_normalised_units():
+    """flow_part=output: only the output layers are drawn; a draw's controller has the physical weights."""
+    arch = FlowArchitecture(dim=3, n_flow=1, n_hidden=8, activation="gelu")
+    x_ref = np.array([0.5, 0.0, 0.07])
+    wn = init_flow_weights(arch, np.random.default_rng(3), init="identity")
+    policy = NFPolicy(arch, weights=rescale_flow_weights(arch, wn, x_ref, 0.05), stiffness=np.diag([300.0] * 3),
+                      damping=np.diag([40.0] * 3), x_ref=x_ref, learn_gains=True)
+    explorer = ParamExploration(policy, 0.4, 0.1, flow_scale=0.05, flow_part="output")
+    mask = output_layer_mask(arch)
+    assert explorer.dim == 6 + int(mask.sum())
+    np.testing.assert_allclose(explorer.flow_mu.detach().numpy(), 0.0, atol=1e-12)
+    theta, _ = explorer.sample(4, np.random.default_rng(0))
+    full = wn.copy()
+    full[mask] = theta[0, 6:]
+    np.testing.assert_allclose(explorer.params_for(theta[0]).weights, rescale_flow_weights(arch, full, x_ref, 0.05))
+    opt = make_param_optimizer(explorer, 0.1, 0.0, lr_flow=0.01)
+    explorer.decay(0.5)
+    follow_sigma(explorer, opt, 0.1, 0.01)
+    assert [g["lr"] for g in opt.param_groups] == pytest.approx([0.1 * 0.2, 0.01 * 0.05])
+    adv = paired_advantages(-theta[:, 6])
+    stats = param_ppo_update(explorer, opt, theta, adv, epochs=3, clip_coef=0.2, per_group=True)
+    assert np.isfinite(stats["approx_kl"]) and stats["epochs"] == 3
+    np.testing.assert_allclose(policy.flow.to_flat(), explorer.flow_weights(explorer.flow_mu.detach().numpy()))
+
+
+def test_subspace_exploration_moves_the_output_layers_along_fixed_directions():
+    arch = FlowArchitecture(dim=3, n_flow=1, n_hidden=8, activation="gelu")
+    x_ref = np.array([0.5, 0.0, 0.07])
+    wn = init_flow_weights(arch, np.random.default_rng(3), init="identity")
+    policy = NFPolicy(arch, weights=rescale_flow_weights(arch, wn, x_ref, 0.05), stiffness=np.diag([300.0] * 3),
+                      damping=np.diag([40.0] * 3), x_ref=x_ref, learn_gains=True)
+    explorer = ParamExploration(policy, 0.4, 0.1, flow_scale=0.05, flow_part="subspace", flow_dim=4, seed=7)
+    assert explorer.dim == 6 + 4
+    basis = explorer.flow_basis.numpy()
+    np.testing.assert_allclose(np.linalg.norm(basis, axis=0), 1.0)
+    z = np.array([0.1, -0.2, 0.0, 0.3])
+    full = wn.copy()
+    mask = output_layer_mask(arch)
+    full[mask] += basis @ z
+    np.testing.assert_allclose(explorer.flow_weights(z), rescale_flow_weights(arch, full, x_ref, 0.05))
+    again = ParamExploration(policy, 0.4, 0.1, flow_scale=0.05, flow_part="subspace", flow_dim=4, seed=7)
+    torch.testing.assert_close(again.flow_basis, explorer.flow_basis)  # from the seed: resumes the same
+
+
+def test_running_advantage_scale_shrinks_small_differences():
+    """param_adv_scale=running: an iteration whose pairs differ 10x less than the earlier ones steps less."""
+    _, explorer = _policy()
+    big = paired_advantages(np.array([0.0, 100.0, 50.0, -50.0]), normalize=False)
+    np.testing.assert_allclose(explorer.running_advantages(big), paired_advantages(np.array([0.0, 100.0, 50.0, -50.0])))
+    small = paired_advantages(np.array([0.0, 10.0, 5.0, -5.0]), normalize=False)
+    scaled = explorer.running_advantages(small)
+    rms_big = np.sqrt(np.mean(big[0::2] ** 2))
+    np.testing.assert_allclose(scaled, small / ((rms_big + rms_big / 10) / 2))
+    assert np.sqrt(np.mean(scaled[0::2] ** 2)) < 0.2
+    state = explorer.state_dict()
+    assert float(state["adv_rms_count"]) == 2.0  # in the checkpoint: a resumed run scales the same

@@ -33,6 +33,10 @@ STARTS = ("random", "fixed")
 PLANES = ("vertical", "horizontal")
 GAINS = ("fixed", "learned")
 EXPLORATIONS = ("action", "params")
+PARAM_FLOWS = ("all", "output", "subspace")
+PARAM_STEPS = ("initial", "current")
+PARAM_RATIOS = ("joint", "group")
+PARAM_ADV_SCALES = ("batch", "running")
 PHYSICS_DT = 0.001  # s, the simulator's (and controller's) step
 
 # Paper settings per task (Khader et al., ICRA 2021); used for the fields left at None.
@@ -98,8 +102,30 @@ class TrainConfig:
     param_sigma_flow: float = 0.0
     """exploration=params: initial std of the perturbation of every flow weight (0: the flow is not explored
     and stays as initialised)."""
+    param_flow: str = "all"
+    """exploration=params, param_sigma_flow > 0: which flow weights are explored: all, or output (the output
+    layers of the s/t networks; the hidden layers stay as initialised, random features of the input), or
+    subspace (param_flow_dim fixed random directions in those output layers' weights)."""
+    param_flow_dim: int = 8
+    """exploration=params, param_flow=subspace: number of explored directions in the flow's weights."""
+    flow_input_scale: float = 0.0
+    """NF policy: m; > 0: the flow's coupling nets see (x - x_ref) / flow_input_scale and translate in
+    units of it (the weights are initialised, and explored, in those units; the controller receives the
+    equivalent physical weights). 0: the nets see x in metres."""
     param_lr: float = 0.05
     """exploration=params: Adam step size of the parameter-space mean, in units of its exploration std."""
+    param_lr_flow: float = 0.0
+    """exploration=params: the flow mean's Adam step in units of its std (0: param_lr)."""
+    param_ratio: str = "joint"
+    """exploration=params: one PPO ratio over all explored parameters (joint) or one per group (group:
+    gains and flow; the distribution factorises, so each is that group's own likelihood ratio)."""
+    param_adv_scale: str = "batch"
+    """exploration=params: the pairs' advantages are divided by this iteration's RMS (batch) or by the mean
+    RMS of all iterations so far (running: iterations whose rollouts differ little step little)."""
+    param_step: str = "initial"
+    """exploration=params: the mean's Adam step is param_lr times the group's initial std (initial), or its
+    std at each update (current: the step shrinks with the exploration, so one update moves the mean by
+    the same number of stds, and the same KL, late as early)."""
     param_sigma_lr: float = 0.05
     """exploration=params: Adam step size of the exploration log-stds (0: the stds stay fixed)."""
     param_sigma_decay: float = 1.0
@@ -182,6 +208,13 @@ class TrainConfig:
         _choice("exploration", self.exploration, EXPLORATIONS)
         _positive("param_sigma_gains", self.param_sigma_gains)
         _non_negative("param_sigma_flow", self.param_sigma_flow)
+        _choice("param_flow", self.param_flow, PARAM_FLOWS)
+        _choice("param_step", self.param_step, PARAM_STEPS)
+        _int_range("param_flow_dim", self.param_flow_dim, 1, 100_000)
+        _choice("param_ratio", self.param_ratio, PARAM_RATIOS)
+        _choice("param_adv_scale", self.param_adv_scale, PARAM_ADV_SCALES)
+        _non_negative("param_lr_flow", self.param_lr_flow)
+        _non_negative("flow_input_scale", self.flow_input_scale)
         _positive("param_lr", self.param_lr)
         _non_negative("param_sigma_lr", self.param_sigma_lr)
         if not 0.0 < self.param_sigma_decay <= 1.0:

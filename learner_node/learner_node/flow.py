@@ -84,6 +84,53 @@ def init_flow_weights(
     return np.concatenate(out).astype(np.float64)
 
 
+def output_layer_mask(arch: FlowArchitecture) -> np.ndarray:
+    """Boolean mask over the flat weights (flow_spec order): True on the output layers (W3, b3) of every
+    s and t network, the entries that are zero in the identity initialisation."""
+    parts = []
+    for i, shape in enumerate(arch.param_shapes()):
+        parts.append(np.full(int(np.prod(shape)), i % _MLP_ARRAYS >= _MLP_ARRAYS - 2))
+    return np.concatenate(parts)
+
+
+def rescale_flow_weights(
+    arch: FlowArchitecture, weights: np.ndarray, x_ref: np.ndarray, scale: float, inverse: bool = False
+) -> np.ndarray:
+    """Physical flow weights from normalised ones (``inverse``: the other way); a linear map.
+
+    Normalised weights describe coupling nets that see ``(c - x_ref_c) / scale`` (c their conditioning
+    coordinates, m) and translate by ``scale`` times their t-output: the same RealNVP bijection with
+    ``W1 / scale``, ``b1 - W1 x_ref_c / scale`` and the t-net's ``W3, b3`` times ``scale``. Around a goal
+    in metres a coupling net with O(1) weights is otherwise nearly affine over the few centimetres
+    that matter (its input barely changes there), so the flow can do little more than S already does.
+    Any normalised weights give a valid flow, so stability holds for every draw.
+    """
+    if scale <= 0.0:
+        raise ValueError(f"flow input scale must be > 0, got {scale}")
+    w = np.asarray(weights, dtype=np.float64).reshape(-1).copy()
+    xr = np.asarray(x_ref, dtype=np.float64).reshape(-1)
+    shapes = arch.param_shapes()
+    sizes = [int(np.prod(shape)) for shape in shapes]
+    offsets = np.cumsum([0, *sizes[:-1]])
+    for i, shape in enumerate(shapes):
+        layer, k = divmod(i, 2 * _MLP_ARRAYS)
+        net, j = divmod(k, _MLP_ARRAYS)
+        off, size = int(offsets[i]), sizes[i]
+        if j == 0:  # W1 and, next, b1
+            cond = list(arch.partition(layer)[0])
+            w1 = w[off : off + size].reshape(shape)
+            b_off = int(offsets[i + 1])
+            if inverse:  # b1_n = b1_p + W1_p x_ref_c, W1_n = scale W1_p
+                w[b_off : b_off + shape[0]] += w1 @ xr[cond]
+                w[off : off + size] *= scale
+            else:  # b1_p = b1_n - W1_n x_ref_c / scale, W1_p = W1_n / scale
+                w[off : off + size] /= scale
+                w[b_off : b_off + shape[0]] -= w[off : off + size].reshape(shape) @ xr[cond]
+        elif net == 1 and j >= _MLP_ARRAYS - 2:  # the t-net's output layer: translations in units of scale
+            w[off : off + size] *= (1.0 / scale) if inverse else scale
+    return w
+
+
 class _CompiledPhiJacobian(torch.autograd.Function):
     """(phi, J) of a float64 ``RealNVPFlow`` by the compiled kernels; backward is their analytic VJP."""
 

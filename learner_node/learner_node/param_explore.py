@@ -3,7 +3,8 @@
 Instead of adding force noise to the controller's output, each rollout of an iteration runs the
 deterministic flow controller with its own parameters theta drawn around the policy's
 (``theta = mu + sigma * eps``): the log-diagonals of S and D (``gains="learned"``) and, if
-``param_sigma_flow > 0``, every flow weight. Whatever theta is drawn, S and D stay symmetric
+``param_sigma_flow > 0``, the flow weights (all, or the s/t output layers; in normalised units if
+``flow_input_scale > 0``, see ``rescale_flow_weights``). Whatever theta is drawn, S and D stay symmetric
 positive definite and phi a bijection, so each exploration rollout is itself a provably stable,
 passive closed loop; and the exploration is coherent over the whole trajectory (a 1 N force
 sample held 10 ms barely moves the gear; a 30 % softer axis acts for five seconds).
@@ -26,6 +27,7 @@ from torch import nn
 
 from nf_core.policy_params import PolicyParameters
 
+from .flow import output_layer_mask, rescale_flow_weights
 from .policy import LN_MAX_DAMPING, LN_MAX_STIFFNESS, NFPolicy
 from .ppo import approx_kl, clipped_surrogate_loss
 
@@ -35,9 +37,19 @@ _LOG_2PI = math.log(2.0 * math.pi)
 class ParamExploration(nn.Module):
     """Gaussian distribution over the explored parameters of an ``NFPolicy`` (mean = the policy's own)."""
 
-    def __init__(self, policy: NFPolicy, sigma_gains: float, sigma_flow: float) -> None:
-        """Explore ln S, ln D (if the policy learns its gains) with std ``sigma_gains`` per entry, and
-        every flow weight with one shared std ``sigma_flow`` (if > 0)."""
+    def __init__(
+        self, policy: NFPolicy, sigma_gains: float, sigma_flow: float, flow_scale: float = 0.0,
+        flow_part: str = "all",
+        flow_dim: int = 8,
+        seed: int = 0,
+    ) -> None:
+        """Explore ln S, ln D (if the policy learns its gains) with std ``sigma_gains`` per entry, and the
+        flow weights (``flow_part``: all; the s/t output layers; or ``subspace``: ``flow_dim`` fixed
+        random unit directions in the output layers' weights, drawn from ``seed``) with one shared std
+        ``sigma_flow``
+        (if > 0). ``flow_scale`` > 0: the flow is explored and learned in normalised weights (nets that
+        see (x - x_ref) / flow_scale, ``rescale_flow_weights``), so one std means the same in every
+        weight whatever the units of x."""
         super().__init__()
         self.policy = [policy]  # a list: not a submodule (its parameters belong to the policy)
         dt = policy.dtype
@@ -51,7 +63,28 @@ class ParamExploration(nn.Module):
         self.log_sigma_flow = nn.Parameter(torch.full((1 if self.explore_flow else 0,),
                                                       math.log(sigma_flow) if self.explore_flow else 0.0, dtype=dt))
         self.n_gain = n_gain
-        self.n_flow = policy.arch.n_params if self.explore_flow else 0
+        self.flow_scale = float(flow_scale)
+        if flow_part not in ("all", "output", "subspace"):
+            raise ValueError(f"flow_part must be all, output or subspace, got {flow_part!r}")
+        mask = output_layer_mask(policy.arch) if flow_part != "all" else np.ones(policy.arch.n_params, bool)
+        self._flow_mask = mask
+        # the full flow in the explored coordinates; the explored entries are the mean ``flow_mu``
+        base = self._to_explored(policy.flow.to_flat())
+        self.register_buffer("flow_base", torch.from_numpy(base))
+        if flow_part == "subspace":
+            # a few directions: a few mirrored pairs can estimate a gradient in them, not in hundreds
+            basis = np.random.default_rng([seed, 31]).standard_normal((int(mask.sum()), flow_dim))
+            basis /= np.linalg.norm(basis, axis=0)
+            self.register_buffer("flow_basis", torch.from_numpy(basis))
+            mu0 = np.zeros(flow_dim)
+        else:
+            self.flow_basis = None
+            mu0 = base[mask].copy()
+        self.flow_mu = nn.Parameter(torch.from_numpy(mu0 if self.explore_flow else mu0[:0].copy()))
+        self.n_flow = mu0.size if self.explore_flow else 0
+        # running advantage scale (param_adv_scale=running): sum and count of the iterations' pair RMS
+        self.register_buffer("adv_rms_sum", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("adv_rms_count", torch.zeros((), dtype=torch.float64))
 
     @property
     def dim(self) -> int:
@@ -65,7 +98,7 @@ class ParamExploration(nn.Module):
         if self.explore_gains:
             out += [pol.ln_s, pol.ln_d]
         if self.explore_flow:
-            out += pol.flow.param_list()
+            out.append(self.flow_mu)
         return out
 
     def mean(self) -> torch.Tensor:
@@ -100,8 +133,59 @@ class ParamExploration(nn.Module):
             changes["stiffness"] = np.diag(np.exp(np.minimum(theta[:d], LN_MAX_STIFFNESS)))
             changes["damping"] = np.diag(np.exp(np.minimum(theta[d : 2 * d], LN_MAX_DAMPING)))
         if self.explore_flow:
-            changes["weights"] = np.asarray(theta[self.n_gain :], dtype=np.float64).copy()
+            changes["weights"] = self.flow_weights(np.asarray(theta[self.n_gain :], dtype=np.float64))
         return dataclasses.replace(base, **changes)
+
+    def _to_explored(self, weights: np.ndarray) -> np.ndarray:
+        """Physical flow weights in the explored coordinates (normalised if ``flow_scale`` > 0)."""
+        if self.flow_scale <= 0.0:
+            return np.asarray(weights, dtype=np.float64).copy()
+        pol = self.policy[0]
+        return rescale_flow_weights(pol.arch, weights, pol.x_ref.numpy(), self.flow_scale, inverse=True)
+
+    def flow_weights(self, explored: np.ndarray) -> np.ndarray:
+        """Physical flow weights (what the controller receives) of explored-entry values ``explored``."""
+        full = self.flow_base.numpy().copy()
+        if self.flow_basis is None:
+            full[self._flow_mask] = explored
+        else:
+            full[self._flow_mask] += self.flow_basis.numpy() @ explored
+        if self.flow_scale <= 0.0:
+            return full
+        pol = self.policy[0]
+        return rescale_flow_weights(pol.arch, full, pol.x_ref.numpy(), self.flow_scale)
+
+    def sync_policy(self) -> None:
+        """Write the mean into the policy (learned gains into S, D; the flow mean into its weights)."""
+        pol = self.policy[0]
+        pol.sync_gains()
+        if self.explore_flow:
+            pol.flow.load_flat(self.flow_weights(self.flow_mu.detach().numpy()))
+
+    def load_state_dict(self, state: dict, strict: bool = True, assign: bool = False) -> object:
+        """As nn.Module's; a state without the flow entries (written before the flow could be explored
+        in its own coordinates, hence gains only) keeps this explorer's own."""
+        state = dict(state)
+        for key in ("flow_base", "flow_mu", "adv_rms_sum", "adv_rms_count"):
+            if key not in state and not (key == "flow_mu" and self.explore_flow):
+                state[key] = getattr(self, key).detach().clone()
+        return super().load_state_dict(state, strict=strict, assign=assign)
+
+    def running_advantages(self, raw: np.ndarray) -> np.ndarray:
+        """``raw`` pair advantages divided by the mean pair RMS over all iterations so far (this one
+        included), not by this iteration's own.
+
+        Normalising each batch to unit size makes an iteration whose pairs differ only by the reward's
+        small shaping terms (every rollout inserts) step as far as one where half of them fail: late in
+        a gear run that walked the lateral stiffness down by 2x (towards less torque) until rollouts
+        stalled on the shaft again. With a running scale such iterations take small steps."""
+        rms = pair_rms(raw)
+        if rms > 0.0:
+            self.adv_rms_sum += rms
+            self.adv_rms_count += 1.0
+        count = float(self.adv_rms_count)
+        scale = float(self.adv_rms_sum) / count if count else 0.0
+        return np.asarray(raw, dtype=np.float64) / scale if scale > 0.0 else np.asarray(raw, dtype=np.float64)
 
     def decay(self, factor: float) -> None:
         """Multiply every exploration std by ``factor``."""
@@ -110,6 +194,18 @@ class ParamExploration(nn.Module):
                 self.log_sigma_gains.add_(math.log(factor))
                 self.log_sigma_flow.add_(math.log(factor))
 
+    def group_log_probs(self, theta: torch.Tensor) -> list[torch.Tensor]:
+        """Gaussian log-density of each row of ``theta`` (K, dim) per explored group (gains, flow): the
+        distribution factorises, so each is the exact density of that group's part of the draw."""
+        mu, sig = self.mean(), self.sigma()
+        z = (theta - mu) / sig
+        out = []
+        for lo, hi in ((0, self.n_gain), (self.n_gain, self.dim)):
+            if hi > lo:
+                out.append(-0.5 * (z[:, lo:hi] ** 2).sum(dim=1) - torch.log(sig[lo:hi]).sum()
+                           - 0.5 * (hi - lo) * _LOG_2PI)
+        return out
+
     def log_prob(self, theta: torch.Tensor) -> torch.Tensor:
         """Gaussian log-density of each row of ``theta`` (K, dim), differentiable in mu and the log-stds."""
         mu, sig = self.mean(), self.sigma()
@@ -117,10 +213,10 @@ class ParamExploration(nn.Module):
         return -0.5 * (z * z).sum(dim=1) - torch.log(sig).sum() - 0.5 * self.dim * _LOG_2PI
 
 
-def paired_advantages(returns: np.ndarray) -> np.ndarray:
+def paired_advantages(returns: np.ndarray, normalize: bool = True) -> np.ndarray:
     """Advantages of mirrored pairs (0, 1), (2, 3), ...: half the return difference (+ for the better
     member); an unpaired last rollout, or a pair with a NaN return (a failed episode), gets 0. Divided by
-    their root mean square over the pairs (if not 0)."""
+    their root mean square over the pairs (if not 0 and ``normalize``)."""
     r = np.asarray(returns, dtype=np.float64)
     adv = np.zeros_like(r)
     m = len(r) // 2
@@ -129,25 +225,55 @@ def paired_advantages(returns: np.ndarray) -> np.ndarray:
     adv[0 : 2 * m : 2] = diff
     adv[1 : 2 * m : 2] = -diff
     scale = float(np.sqrt(np.mean(diff * diff))) if m else 0.0
-    return adv / scale if scale > 0.0 else adv
+    return adv / scale if scale > 0.0 and normalize else adv
 
 
-def make_param_optimizer(explorer: ParamExploration, lr: float, sigma_lr: float) -> torch.optim.Adam:
-    """Adam with steps scaled per group: the mean moves by about ``lr`` of its (initial) std per step, the
-    log-stds by ``sigma_lr`` (0: not optimised, the stds stay as initialised)."""
+def pair_rms(advantages: np.ndarray) -> float:
+    """Root mean square of the pairs' (raw) advantages: the size of this iteration's return differences."""
+    a = np.asarray(advantages, dtype=np.float64)
+    m = len(a) // 2
+    return float(np.sqrt(np.mean(a[0 : 2 * m : 2] ** 2))) if m else 0.0
+
+
+def make_param_optimizer(
+    explorer: ParamExploration, lr: float, sigma_lr: float, lr_flow: float = 0.0
+) -> torch.optim.Adam:
+    """Adam with steps scaled per group: the mean moves by about ``lr`` (the flow's: ``lr_flow`` if > 0)
+    of its (initial) std per step, the log-stds by ``sigma_lr`` (0: not optimised, the stds stay as
+    initialised). Adam moves every coordinate by about its step whatever the size of its gradient, so
+    in the flow's ~100-1000 coordinates, estimated from a few mirrored pairs, a gains-sized step is
+    mostly a random walk: the flow needs its own, smaller step."""
     groups = []
     pol = explorer.policy[0]
     if explorer.explore_gains:
         sg = float(torch.exp(explorer.log_sigma_gains.detach()).mean())
-        groups.append({"params": [pol.ln_s, pol.ln_d], "lr": lr * sg})
+        groups.append({"params": [pol.ln_s, pol.ln_d], "lr": lr * sg, "std_of": "gains"})
         if sigma_lr > 0.0:
             groups.append({"params": [explorer.log_sigma_gains], "lr": sigma_lr})
     if explorer.explore_flow:
         sf = float(torch.exp(explorer.log_sigma_flow.detach())[0])
-        groups.append({"params": pol.flow.param_list(), "lr": lr * sf})
+        groups.append({"params": [explorer.flow_mu], "lr": (lr_flow if lr_flow > 0.0 else lr) * sf,
+                       "std_of": "flow"})
         if sigma_lr > 0.0:
             groups.append({"params": [explorer.log_sigma_flow], "lr": sigma_lr})
     return torch.optim.Adam(groups)
+
+
+def follow_sigma(explorer: ParamExploration, optimizer: torch.optim.Optimizer, lr: float,
+                 lr_flow: float = 0.0) -> None:
+    """Set the mean's step of each group to ``lr`` (the flow's: ``lr_flow`` if > 0) times the group's
+    current std (``param_step=current``).
+
+    With a step fixed at the initial std, a decayed exploration makes every update move the mean by
+    several of its current stds (approx_kl 1.5-8 per update late in a gear run, from 0.1-0.8 early):
+    the mean jumps outside the region its rollouts sampled, on the evidence of 7 pairs."""
+    with torch.no_grad():
+        std = {"gains": explorer.log_sigma_gains, "flow": explorer.log_sigma_flow}
+        for group in optimizer.param_groups:
+            which = group.get("std_of")
+            if which is not None and std[which].numel():
+                step = lr_flow if which == "flow" and lr_flow > 0.0 else lr
+                group["lr"] = step * float(torch.exp(std[which]).mean())
 
 
 def param_ppo_update(
@@ -158,30 +284,41 @@ def param_ppo_update(
     epochs: int,
     clip_coef: float,
     target_kl: float = 0.0,
+    per_group: bool = False,
 ) -> dict[str, float]:
     """``epochs`` full-batch steps of PPO's clipped surrogate over rollouts (one action per rollout:
-    its parameter vector); stops early like ``ppo_update`` when approx_kl exceeds 1.5 x target_kl."""
+    its parameter vector); stops early like ``ppo_update`` when approx_kl exceeds 1.5 x target_kl.
+
+    ``per_group``: one clipped surrogate per explored group (gains, flow), summed, each with its own
+    ratio. With one joint ratio, a move of the flow's many coordinates pushes every rollout's ratio
+    out of the clip range, which then also stops the gains' gradient."""
     th = torch.from_numpy(np.asarray(theta, dtype=np.float64))
     adv = torch.from_numpy(np.asarray(advantages, dtype=np.float64))
+
+    def densities() -> list[torch.Tensor]:
+        return explorer.group_log_probs(th) if per_group else [explorer.log_prob(th)]
+
     with torch.no_grad():
-        old = explorer.log_prob(th)
+        old = densities()
     limit = 1.5 * target_kl if target_kl > 0.0 else math.inf
     losses, clips, run = [], [], 0
     for _ in range(epochs):
-        new = explorer.log_prob(th)
+        new = densities()
         with torch.no_grad():
-            if float(approx_kl(new, old)) > limit:
+            if sum(float(approx_kl(n, o)) for n, o in zip(new, old, strict=True)) > limit:
                 break
-        loss, clip_frac = clipped_surrogate_loss(new, old, adv, clip_coef)
+        parts = [clipped_surrogate_loss(n, o, adv, clip_coef) for n, o in zip(new, old, strict=True)]
+        loss = sum(p[0] for p in parts)
+        clip_frac = max(float(p[1]) for p in parts)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
         run += 1
         losses.append(float(loss.detach()))
         clips.append(float(clip_frac))
-    explorer.policy[0].sync_gains()
+    explorer.sync_policy()
     with torch.no_grad():
-        kl = float(approx_kl(explorer.log_prob(th), old))
+        kl = sum(float(approx_kl(n, o)) for n, o in zip(densities(), old, strict=True))
     return {
         "pg_loss": float(np.mean(losses)) if losses else math.nan,
         "v_loss": math.nan,

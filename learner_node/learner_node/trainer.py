@@ -28,8 +28,9 @@ from nf_core.policy_params import PolicyParameters
 from nf_core.reward import REWARD_TERMS
 
 from .config import TrainConfig
+from .flow import init_flow_weights, rescale_flow_weights
 from .mlp_policy import MLPEvaluator, MLPPolicy
-from .param_explore import ParamExploration, make_param_optimizer, paired_advantages, param_ppo_update
+from .param_explore import ParamExploration, follow_sigma, make_param_optimizer, paired_advantages, param_ppo_update
 from .policy import NFPolicy
 from .ppo import (
     LinearFeatureBaseline,
@@ -55,7 +56,9 @@ RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes"})
 # settings only the NF policy reads: an MLP run's checkpoint resumes whatever they are
 NF_ONLY = frozenset({"n_flow", "n_hidden", "activation", "flow_init", "stiffness", "damping", "stiffness_axial",
                      "damping_axial", "gains", "exploration", "param_sigma_gains", "param_sigma_flow", "param_lr",
-                     "param_sigma_lr", "param_sigma_decay"})
+                     "param_sigma_lr", "param_sigma_decay", "param_flow",
+                     "flow_input_scale", "param_step",
+                     "param_lr_flow", "param_ratio", "param_flow_dim", "param_adv_scale"})
 TIMING_KEYS = ("rollout_seconds", "update_seconds", "wall_seconds")
 
 
@@ -64,7 +67,11 @@ def build_policy(cfg: TrainConfig, x_ref: np.ndarray) -> NFPolicy | MLPPolicy:
     d = cfg.dim
     if cfg.policy == "nf":
         arch = FlowArchitecture(dim=d, n_flow=cfg.n_flow, n_hidden=cfg.n_hidden, activation=cfg.activation)
-        return NFPolicy(arch, stiffness=cfg.stiffness_matrix(), damping=cfg.damping_matrix(),
+        weights = None
+        if cfg.flow_input_scale > 0.0:  # initialised in normalised units: O(1) features over the scale
+            normalised = init_flow_weights(arch, np.random.default_rng(cfg.seed), init=cfg.flow_init)
+            weights = rescale_flow_weights(arch, normalised, x_ref, cfg.flow_input_scale)
+        return NFPolicy(arch, weights=weights, stiffness=cfg.stiffness_matrix(), damping=cfg.damping_matrix(),
                         x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed,
                         flow_init=cfg.flow_init, learn_gains=cfg.gains == "learned")
     return MLPPolicy(d, cfg.mlp_hidden, cfg.mlp_activation, x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed)
@@ -120,8 +127,9 @@ class Trainer:
         self.explorer: ParamExploration | None = None
         self._pending: np.ndarray | None = None  # params exploration: this iteration's parameter draws
         if cfg.policy == "nf" and cfg.exploration == "params":
-            self.explorer = ParamExploration(self.policy, cfg.param_sigma_gains, cfg.param_sigma_flow)
-            self.optimizer = make_param_optimizer(self.explorer, cfg.param_lr, cfg.param_sigma_lr)
+            self.explorer = ParamExploration(self.policy, cfg.param_sigma_gains, cfg.param_sigma_flow,
+                                             cfg.flow_input_scale, cfg.param_flow, cfg.param_flow_dim, cfg.seed)
+            self.optimizer = make_param_optimizer(self.explorer, cfg.param_lr, cfg.param_sigma_lr, cfg.param_lr_flow)
         else:
             if cfg.baseline == "value":
                 self.value_net = ValueNetwork(2 * cfg.dim, cfg.value_hidden, seed=cfg.seed)
@@ -215,12 +223,18 @@ class Trainer:
         if self.explorer is not None:
             if self._pending is None or len(self._pending) != len(episodes):
                 raise ValueError("params exploration: update() needs the episodes of episode_plan(), in order")
-            adv = paired_advantages(np.array([np.nan if e is None else e.episode_return for e in episodes]))
+            if self.cfg.param_step == "current":
+                follow_sigma(self.explorer, self.optimizer, self.cfg.param_lr, self.cfg.param_lr_flow)
+            returns = np.array([np.nan if e is None else e.episode_return for e in episodes])
+            if self.cfg.param_adv_scale == "running":
+                adv = self.explorer.running_advantages(paired_advantages(returns, normalize=False))
+            else:
+                adv = paired_advantages(returns)
             episodes = [e for e in episodes if e is not None]
             if not episodes:
                 raise ValueError("params exploration: every episode failed")
             stats = param_ppo_update(self.explorer, self.optimizer, self._pending, adv, self.cfg.update_epochs,
-                                     self.cfg.clip_coef, self.cfg.target_kl)
+                                     self.cfg.clip_coef, self.cfg.target_kl, self.cfg.param_ratio == "group")
             self.explorer.decay(self.cfg.param_sigma_decay)
             self._pending = None
             decisions = sum(len(e.reward) for e in episodes)

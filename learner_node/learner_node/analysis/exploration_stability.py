@@ -168,7 +168,8 @@ def load_policy(cfg: TrainConfig, checkpoint: Path | None) -> tuple[NFPolicy, Pa
         raise ValueError("the stability measurement is for the NF policy (policy: nf)")
     explorer = None
     if cfg.exploration == "params":
-        explorer = ParamExploration(policy, cfg.param_sigma_gains, cfg.param_sigma_flow)
+        explorer = ParamExploration(policy, cfg.param_sigma_gains, cfg.param_sigma_flow, cfg.flow_input_scale,
+                                    cfg.param_flow, cfg.param_flow_dim, cfg.seed)
     if checkpoint is not None:
         state = torch.load(checkpoint, weights_only=True)
         policy.load_state_dict(state["policy"])
@@ -200,7 +201,8 @@ def main(argv: list[str] | None = None) -> int:
             learned, _ = load_policy(cfg, None)
             learned.flow.load_flat(policy.flow.to_flat())
             policy = learned
-        explorer = ParamExploration(policy, cfg.param_sigma_gains, cfg.param_sigma_flow)
+        explorer = ParamExploration(policy, cfg.param_sigma_gains, cfg.param_sigma_flow, cfg.flow_input_scale,
+                                    cfg.param_flow, cfg.param_flow_dim, cfg.seed)
     sigma = float(policy.std().detach().mean()) if args.sigma is None else args.sigma
     hold = cfg.decision_period if args.hold is None else args.hold
     rows = []
