@@ -319,9 +319,13 @@ def test_composed_stack_monitor_always_publishes_to_nobody(probe_and_domain, tmp
     (["-m", "nf_bringup.sim_stack", "--ros-args", "-p", "sim_bridge:task:=free", "-p", "sim_bridge:mode:=realtime",
       "-p", "sim_bridge:rt_priority:=150"], "rt_priority must be -1"),
     ([*CONTROLLER, "-p", "held_part:=anvil"], "held_part must be"),
-    # a -p whose type differs from the parameters file's: rcl keeps the file's value without a word
+    # a -p whose type differs from a node section of the parameters file: rcl keeps the file's value
+    # without a word, the node says so
+    ([*CONTROLLER, "--params-file", str(REPO / "tests" / "params_node_section.yaml"),
+      "-p", "nf_controller:hold_damping:=soft"], "not applied: -p nf_controller:hold_damping:=soft (in effect: 2.0)"),
+    # against the repository's files (sections /**/nf_controller) the -p reaches the node: a type error
     ([*CONTROLLER, "--params-file", str(REPO / "config" / "gear.yaml"), "-p", "nf_controller:hold_damping:=soft"],
-     "not applied: -p nf_controller:hold_damping:=soft (in effect: 2.0)"),
+     "Trying to set parameter 'hold_damping' to 'soft' of type 'STRING', expecting type 'DOUBLE'"),
 ])
 def test_nodes_refuse_bad_parameters(args, reason, tmp_path: Path):
     with RosProcess(args, allocate_domain_id(), tmp_path / "node.log") as node:
