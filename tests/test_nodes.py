@@ -215,9 +215,9 @@ def test_realtime_sim_holds_arm_when_controller_is_killed(probe_and_domain, tmp_
             assert statuses[-1][1].mode == ControllerStatus.MODE_IDLE, statuses[-1][1].fault
             # A policy swap can still stall the controller past the 50 ms timeout on a cold numba
             # cache (a known issue): the sim must have left any such hold before the kill.
-            last = [v for _, v in diags if v]
-            assert last and last[-1]["safe_hold"] == "False", logs()
-            timeouts_before = int(last[-1]["command_timeouts"])
+            last = lambda: [v for _, v in diags if v][-1:]  # noqa: E731
+            assert probe.spin_until(lambda: last() and last()[0]["safe_hold"] == "False", 10.0), logs()
+            timeouts_before = int(last()[0]["command_timeouts"])
             assert probe.spin_until(lambda: bool(states), 5.0), logs()  # best effort: wait for one
             q_before = states[-1][1]
             ctl.proc.send_signal(signal.SIGKILL)
@@ -232,11 +232,18 @@ def test_realtime_sim_holds_arm_when_controller_is_killed(probe_and_domain, tmp_
     after = np.array([q for t, q in states if t > t_kill])
     drift = np.degrees(np.max(np.abs(after - q_before), axis=0))
     hold = next(v for t, v in diags if t > t_kill and v and v["safe_hold"] == "True")
-    assert int(hold["command_timeouts"]) == timeouts_before + 1
-    assert t_hold - t_kill < 0.5, f"safe hold reported {t_hold - t_kill:.3f} s after the kill"
+    assert int(hold["command_timeouts"]) == timeouts_before + 1, sim.log()
+    # What the arm saw: simulated time on the dead controller's last command before the hold. The
+    # timeout is 50 ms of wall time and a realtime sim's clock can only fall behind the wall (a
+    # stalled process stalls its physics too), so at most 50 ms + one tick whatever the load. The
+    # report's wall-clock latency does vary with load (usually ~55 ms; one diagnostics period, 1 s,
+    # has been seen on a loaded CI machine), so it is bounded by two periods.
+    delay_ms = float(hold["hold_delay_ms"])
+    assert 0.0 < delay_ms <= 51.0, f"safe hold after {delay_ms} ms of sim time on the last command"
+    assert t_hold - t_kill < 2.0, f"safe hold reported {t_hold - t_kill:.3f} s after the kill\n{sim.log()}"
     assert len(after) > 100 and np.all(drift < 3.0), f"joint drift after the kill (deg): {drift}"
-    print(f"realtime: safe hold reported {1e3 * (t_hold - t_kill):.0f} ms after SIGKILL, "
-          f"max joint drift over 1 s {drift.max():.3f} deg")
+    print(f"realtime: safe hold after {delay_ms:.1f} ms of sim time on the last command, reported "
+          f"{1e3 * (t_hold - t_kill):.0f} ms after SIGKILL, max joint drift over 1 s {drift.max():.3f} deg")
 
 
 def test_composed_realtime_stack_times_its_ticks(probe_and_domain, tmp_path: Path):

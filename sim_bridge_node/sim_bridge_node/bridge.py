@@ -66,6 +66,8 @@ class SimBridge:
         self._command = np.zeros(env.nu)  # last accepted command, without the driver's gravity
         self._has_command = False
         self._command_time = -np.inf  # wall time (s) of the last accepted command
+        self._command_sim_time = 0.0  # sim time (s) when the last command was accepted
+        self.hold_delay = float("nan")  # sim s the last command was applied before the latest timeout hold
         self._hold_anchor: np.ndarray | None = None  # q where the current safe hold began
         self.torque = np.zeros(env.nu)  # torque applied in the last step (Nm), what `effort` reports
         self.clock_offset = 0.0  # sim time (s) of all earlier episodes: the clock never goes back
@@ -189,6 +191,7 @@ class SimBridge:
         self._command[:] = arr
         self._has_command = True
         self._command_time = now
+        self._command_sim_time = self.clock_offset + self.env.data.time
         return ACCEPTED
 
     def accept_torque(self, tau: np.ndarray, now: float) -> str:
@@ -198,6 +201,7 @@ class SimBridge:
             return self.accept_command(tau, now)  # counted, with its reason
         self._has_command = True
         self._command_time = now
+        self._command_sim_time = self.clock_offset + self.env.data.time
         return ACCEPTED
 
     @property
@@ -251,6 +255,9 @@ class SimBridge:
         stale = not self._has_command or now - self._command_time > self.config.command_timeout
         if stale and not self.in_hold and self._has_command:
             self.command_timeouts += 1
+            # in sim time: a process stalled by the machine stalls the physics too, so this is what the
+            # arm saw, whatever the wall clock did
+            self.hold_delay = self.sim_time - self._command_sim_time
         if stale:
             self.hold_steps += 1
             self._apply(self.hold_torque())

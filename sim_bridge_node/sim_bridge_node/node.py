@@ -363,6 +363,7 @@ class SimBridgeNode(Node):
             "steps": b.steps, "steps_per_s": f"{(b.steps - steps0) / wall:.1f}",
             "real_time_factor": f"{(b.sim_time - sim0) / wall:.3f}",
             "safe_hold": holding, "command_timeouts": b.command_timeouts, "hold_steps": b.hold_steps,
+            "hold_delay_ms": f"{b.hold_delay * 1e3:.1f}",
             "bad_commands": b.bad_commands, "stale_commands": b.stale_commands, "last_error": b.last_error,
             "lockstep_resends": self.resends, "late_ticks": self.late_ticks,
         }
