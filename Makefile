@@ -11,7 +11,9 @@ lint: setup  ## ruff over the whole tree
 	@$(ENV) && ruff check .
 
 test: setup  ## set up if needed, then lint and the full test suite
-	@$(ENV) && ruff check . && python -m pytest
+	@$(ENV) && ruff check . && status=0 \
+	  && { python -m pytest -n 2 -m "not timing" || status=$$?; } \
+	  && { python -m pytest -m timing || status=$$?; } && exit $$status  # two workers, then the timing tests alone
 
 bench: setup bench-deps  ## speed benchmarks; JSON results in bench/results/
 	@$(ENV) && python bench/run_all.py

@@ -1,7 +1,52 @@
-"""Shared pytest setup: every ROS context in the test process stays on loopback, over UDP."""
+"""Shared pytest setup: every ROS context in the test process stays on loopback, over UDP.
+
+``make test`` runs the suite on two pytest-xdist workers (most tests wait on other processes, so one
+worker leaves a core idle). Each worker gets its own range of ROS domain ids; a test module stays on
+one worker (module fixtures are built once); the modules that need a machine-wide resource share a
+worker: franky-sim listens on 127.0.0.1's libfranka ports, the two-host tests make network
+namespaces. The longest modules start first so that neither worker is left with a long tail.
+Tests marked ``timing`` (1 kHz loops between processes, judged by the wall clock) are not run
+beside anything: ``make test`` runs them serially after the rest.
+"""
 
 import os
+from pathlib import Path
+
+import pytest
 
 from nf_bringup.processes import isolate
 
 isolate(os.environ, domain_id=None, sources=False)
+
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")  # gw0, gw1, ... under xdist
+if _WORKER.startswith("gw"):
+    _n = int(_WORKER[2:])
+    os.environ["NF_DOMAIN_IDS"] = f"{1 + 100 * _n}-{99 + 100 * _n}"
+
+# modules that start franky-sim (fixed ports on 127.0.0.1) or network namespaces: one worker for all
+_ONE_MACHINE = ("test_franka_", "test_robot_run", "test_thread_priority", "test_two_hosts")
+# the longest modules (seconds each, serial), started first
+_FIRST = ("test_stability", "test_learning_over_ros", "test_franka_ros", "test_many_arms", "test_bags",
+          "test_franka_gear")
+
+
+def _scope(nodeid: str) -> str:
+    module = nodeid.split("::", 1)[0]
+    return "one_machine" if Path(module).stem.startswith(_ONE_MACHINE) else module
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    rank = {name: i for i, name in enumerate(_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))  # stable: file order otherwise
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
+    """Work units of one module each, except the one-machine modules, which form one unit."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ModuleScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return _scope(nodeid)
+
+    return ModuleScheduling(config, log)

@@ -137,6 +137,7 @@ def _sim_clock(diags: _View) -> tuple[float, float] | None:
     return (last[-1][0], float(last[-1][1]["sim_time"])) if last else None
 
 
+@pytest.mark.timing  # judges the realtime sim's real-time factor: run with nothing beside
 def test_flood_of_bad_messages_keeps_every_command_safe_and_every_fault_clearable(tmp_path: Path):
     domain = allocate_domain_id()
     probe = Probe(domain)

@@ -49,8 +49,11 @@ def use_sources() -> None:
 
 
 def allocate_domain_id() -> int:
-    """A ROS_DOMAIN_ID: distinct per call in this process, spread by PID across processes."""
-    return 1 + (os.getpid() * 7 + next(_domains)) % 200
+    """A ROS_DOMAIN_ID: distinct per call in this process, spread by PID across processes; within
+    ``NF_DOMAIN_IDS`` (``first-last``) when set, so that processes given disjoint ranges never meet."""
+    spec = os.environ.get("NF_DOMAIN_IDS", "")
+    first, last = (int(x) for x in spec.split("-")) if spec else (1, 200)
+    return first + (os.getpid() * 7 + next(_domains)) % (last - first + 1)
 
 
 def isolate(env: MutableMapping[str, str], domain_id: int | None, sources: bool = True,
