@@ -34,12 +34,13 @@ from nf_core.topics import POLICY_PARAMETERS
 from ros_testing import REPO, RosProcess, allocate_domain_id, thread_policies
 
 pytestmark = pytest.mark.ros
+# 1 kHz loops between processes, judged by the wall clock (every state answered, the hold's report,
+# the tick period): make test runs these alone, after the rest
+TIMED = pytest.mark.timing
 
 SIM = ["-m", "sim_bridge_node.node", "--ros-args", "-p", "task:=free"]
 CONTROLLER = ["-m", "nf_controller_node.node", "--ros-args", "-p", "idle_mode:=policy"]  # no episodes here
 GOAL_OFFSET = np.array([0.05, 0.0, -0.10])  # m, x_ref relative to the start TCP position
-# realtime loops between processes at 1 kHz: timed against the wall clock, so run with nothing beside
-pytestmark = pytest.mark.timing
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 SAMPLED = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)  # for high-rate topics
 
@@ -164,6 +165,7 @@ def test_lockstep_closed_loop_reaches_goal(probe_and_domain, tmp_path: Path):
           f"after the policy arrived; sim time {stamps[-1]:.2f} s")
 
 
+@TIMED
 def test_controller_holds_on_bad_joint_states(probe_and_domain, tmp_path: Path):
     probe, domain = probe_and_domain
     statuses = probe.collect(ControllerStatus, "/controller_status")
@@ -198,6 +200,7 @@ def test_controller_holds_on_bad_joint_states(probe_and_domain, tmp_path: Path):
           f"{last['bad_inputs']} bad inputs rejected")
 
 
+@TIMED
 def test_realtime_sim_holds_arm_when_controller_is_killed(probe_and_domain, tmp_path: Path):
     probe, domain = probe_and_domain
     tasks = probe.collect(TaskStatus, "/task_status", RELIABLE, lambda m: np.array(m.part_position))
@@ -253,6 +256,7 @@ def test_realtime_sim_holds_arm_when_controller_is_killed(probe_and_domain, tmp_
           f"({moved:.3f} deg from the last state before the kill)")
 
 
+@TIMED
 def test_composed_realtime_stack_times_its_ticks(probe_and_domain, tmp_path: Path):
     """nf_sim_stack in realtime mode: the sim is the driver, steps on its own 1 kHz schedule and
     times every tick (``TickTiming``); at shutdown the tick log and its summary are written. The
