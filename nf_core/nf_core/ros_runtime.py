@@ -16,7 +16,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from typing import Any
 
 import rclpy
@@ -97,16 +97,18 @@ def _same_value(actual: Any, given: Any) -> bool:
     return actual == given
 
 
-def declare_read_only(node: Node, spec: Mapping[str, tuple[Any, str]]) -> dict[str, Any]:
+def declare_read_only(node: Node, spec: Mapping[str, tuple[Any, str]], dynamic: Collection[str] = ()
+                      ) -> dict[str, Any]:
     """Declare parameters ``name: (default, description)`` as read-only (fixed for the node's life)
-    and return their values. Checking the values is the caller's job.
+    and return their values. Checking the values is the caller's job. The names in ``dynamic`` take
+    a value of any type (a number or a list, ``0.5`` as well as ``[0.5, 0.3]``): their caller checks it.
 
     A ``-p`` on the command line that did not take effect is an error (``ValueError``), never
     silence: rcl drops a command-line value whose type differs from the one a ``--params-file``
     gives the same parameter (``-p franka_driver:reset_settle:=abc`` left the file's 200 in place)."""
     values = {}
     for name, (default, description) in spec.items():
-        descriptor = ParameterDescriptor(description=description, read_only=True)
+        descriptor = ParameterDescriptor(description=description, read_only=True, dynamic_typing=name in dynamic)
         values[name] = node.declare_parameter(name, default, descriptor).value
     given = command_line_parameters(sys.argv if _command_line is None else _command_line, node.get_name())
     ignored = []

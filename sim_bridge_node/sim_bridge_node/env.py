@@ -10,6 +10,7 @@ during the last step.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from typing import NamedTuple
 
 import mujoco
@@ -53,6 +54,26 @@ def copy_if_finite(values: np.ndarray, out: np.ndarray) -> bool:
     for i in range(values.shape[0]):
         out[i] = values[i]
     return True
+
+
+def joint_values(value: object, names: Sequence[str], what: str) -> np.ndarray:
+    """A per-joint parameter (``joint_friction``, ``joint_viscous``) as an array of ``len(names)``
+    finite values >= 0: a number, or a list of one value (for every joint) or one per joint.
+    ``ValueError`` naming ``what`` and the joints otherwise."""
+    n = len(names)
+    items = [value] if isinstance(value, (str, bytes)) or not isinstance(value, Iterable) else list(value)
+    if any(isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating))
+           for v in items):
+        raise ValueError(f"{what} must be a number or a list of numbers (one, or one per joint: "
+                         f"{', '.join(names)}), got {value!r}")
+    if len(items) not in (1, n):
+        raise ValueError(f"{what} must have 1 value (every joint) or {n} (one per joint: {', '.join(names)}), "
+                         f"got {len(items)}: {items}")
+    arr = np.broadcast_to(np.asarray(items, dtype=float), (n,)).copy()
+    bad = [names[i] for i in np.flatnonzero(~(np.isfinite(arr) & (arr >= 0.0)))]
+    if bad:
+        raise ValueError(f"{what} must be finite and >= 0 for every joint, got {arr.tolist()} (bad: {bad})")
+    return arr
 
 
 class InsertionEnv:
@@ -100,6 +121,7 @@ class InsertionEnv:
         std = default_std if start_std is None else start_std
         self.start_std = np.broadcast_to(np.asarray(std, dtype=float), (self.nq,)).copy()
         self._vel6 = np.zeros(6)
+        self._base_damping = m.dof_damping[self._vadr].copy()  # the scene's own (panda_spec.JOINT_DAMPING)
         self._ctrl = self.data.ctrl  # view into MjData, reused every step
         self.last_torque = np.zeros(m.nu)
         self.reset()
@@ -129,6 +151,30 @@ class InsertionEnv:
     def q_limits(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper joint limits."""
         return self._q_lo.copy(), self._q_hi.copy()
+
+    # ------------------------------------------------------------------ joint friction
+    def set_joint_friction(self, coulomb: object = 0.0, viscous: object = 0.0) -> None:
+        """Joint friction of the controlled joints, for identification tests and randomization:
+        ``coulomb`` (Nm; N for the block) becomes MuJoCo's ``dof_frictionloss`` (a constraint-based
+        Coulomb friction, at most that much torque against the motion) and ``viscous`` (Nm s/rad)
+        is added to the scene's own viscous damping (``panda_spec.JOINT_DAMPING``) in ``dof_damping``.
+        Each is a number or a list of one value per joint (or a single value for all); 0 (the
+        default) leaves the scene as built. Neither shows in ``last_torque`` (the applied command,
+        what ``joint_states.effort`` reports): the friction is part of the physics.
+
+        Raises ``ValueError`` naming the parameter for a value that is not a finite number >= 0 or
+        a list of the wrong length; nothing is changed then. The model is changed in place, so a
+        batch sharing one scene shares the friction too."""
+        names = self.scene.joint_names
+        fc = joint_values(coulomb, names, "joint_friction")
+        fv = joint_values(viscous, names, "joint_viscous")
+        self.model.dof_frictionloss[self._vadr] = fc
+        self.model.dof_damping[self._vadr] = self._base_damping + fv
+
+    @property
+    def joint_friction(self) -> tuple[np.ndarray, np.ndarray]:
+        """(Coulomb ``dof_frictionloss``, total viscous ``dof_damping``) of the controlled joints now."""
+        return self.model.dof_frictionloss[self._vadr].copy(), self.model.dof_damping[self._vadr].copy()
 
     # ------------------------------------------------------------------ reset and step
     def reset(self, seed: int | None = None, q: np.ndarray | None = None) -> Observation:

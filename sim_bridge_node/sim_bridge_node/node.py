@@ -68,6 +68,10 @@ PARAMETERS = {
     "command_timeout": (0.05, "realtime: s without a command before the safe hold"),
     "hold_damping": (2.0, "joint damping of the safe hold, Nm s/rad"),
     "hold_stiffness": (0.0, "joint spring of the safe hold to where it began, Nm/rad (0: damping only)"),
+    "joint_friction": (0.0, "Coulomb joint friction, Nm (MuJoCo frictionloss): one value for every joint or a list "
+                            "of one per joint; 0: none (the default)"),
+    "joint_viscous": (0.0, "viscous joint friction added to the arm's own damping (panda_spec.JOINT_DAMPING), "
+                           "Nm s/rad: one value or one per joint; 0: none added (the default)"),
     "seed": (-1, "start of the first episode: < 0 fixed start, else a sampled start"),
     "lockstep_resend": (0.1, "lockstep: s of wall time before an unanswered state is published again"),
     "task_status_rate": (50.0, "task_status messages per s of simulated time (0: off)"),
@@ -89,6 +93,7 @@ PARAMETERS = {
     "response_log": ("", "realtime: every latency to this .npy (+ .json summary) at shutdown; folder checked at start"),
 }
 
+DYNAMIC_PARAMETERS = ("joint_friction", "joint_viscous")  # a number or a list: checked by the env
 _LATE_TICK = 2.0  # realtime: a tick later than this many periods counts as late
 LISTENERS_PERIOD = 0.2  # s, composed: how often the driver thread looks up who subscribes to its monitoring
 _ALL_LISTENED = (True, True, True, True)  # joint_states, applied commands, clock, task_status
@@ -126,14 +131,20 @@ class SimBridgeNode(Node):
 
     def __init__(self, state_qos: QoSProfile = qos.STATE, host: LoopHost | None = None) -> None:
         super().__init__("sim_bridge")
-        p = declare_read_only(self, PARAMETERS)
+        p = declare_read_only(self, PARAMETERS, dynamic=DYNAMIC_PARAMETERS)
         _check(p)
         config = BridgeConfig(mode=p["mode"], command_timeout=p["command_timeout"],
                               driver_gravity_compensation=p["driver_gravity_compensation"],
                               hold_damping=p["hold_damping"], hold_stiffness=p["hold_stiffness"])
         config.check()
         self.params = p
-        self.bridge = SimBridge(InsertionEnv(p["task"], plane=p["block_plane"]), config)
+        env = InsertionEnv(p["task"], plane=p["block_plane"])
+        env.set_joint_friction(p["joint_friction"], p["joint_viscous"])  # ValueError naming the parameter
+        coulomb, damping = env.joint_friction
+        if np.any(coulomb) or np.any(p["joint_viscous"]):
+            self.get_logger().info(f"joint friction: Coulomb {np.round(coulomb, 4).tolist()} Nm, viscous (with "
+                                   f"the arm's own damping) {np.round(damping, 4).tolist()} Nm s/rad")
+        self.bridge = SimBridge(env, config)
         self.bridge.reset(seed=p["seed"])
         self.lockstep = p["mode"] == "lockstep"
         if host is None and p["rt_priority"] > 0:
