@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from nf_msgs.action import RunEpisode
 from nf_msgs.msg import ControllerStatus, RolloutChunk
 from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
@@ -19,10 +20,12 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from learner_node.config import TrainConfig
-from learner_node.trainer import Trainer, metrics_without_timing
+from learner_node.flow import rescale_flow_weights
+from learner_node.trainer import CHECKPOINT_FORMAT, Trainer, build_policy, metrics_without_timing
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.control_loop import MODE_IDLE, JointMap
 from nf_core import panda_spec, qos
+from nf_core.policy_params import PolicyParameters
 from nf_core.topics import POLICY_PARAMETERS
 
 from ros_testing import REPO, RosProcess, allocate_domain_id
@@ -181,24 +184,46 @@ def test_a_latched_fault_makes_the_learner_wait_for_a_person_and_go_on_without_l
 def test_learner_goal_parameter_reaches_the_published_policy_over_dds(tmp_path):
     """``-p learner_node:goal:=[...]`` as docs/hardware.md writes it (a goal measured on a real cell):
     the policy the learner publishes over DDS aims at it (x_ref) and its config.json keeps it; a goal
-    of the wrong length stops the learner with exit code 2 and a message naming the setting."""
+    of the wrong length stops the learner with exit code 2 and a message naming the setting. With
+    ``init_checkpoint`` (``run_robot --from-checkpoint``) the published policy is the checkpoint's, its
+    goal replaced; a missing checkpoint stops the learner the same way."""
     domain = allocate_domain_id()
     probe = Probe(domain)
     policies = probe.collect(PolicyParametersMsg, POLICY_PARAMETERS, qos.POLICY)
     goal = [0.52, 0.03, 0.05]
+    cfg = TrainConfig.from_sources(REPO / "config" / "gear_learn.yaml")
+    sim = build_policy(cfg, np.array([0.5, 0.0, 0.07]))  # a "simulation" policy with other gains, as a checkpoint
+    with torch.no_grad():
+        sim.ln_s.add_(torch.tensor([0.5, 0.2, -0.4], dtype=torch.float64))
+    sim.sync_gains()
+    torch.save({"format": CHECKPOINT_FORMAT, "config": cfg.to_dict(), "iteration": 30, "policy": sim.state_dict(),
+                "explorer": None}, tmp_path / "sim.pt")
     common = ["-m", "learner_node.node", "--ros-args", "--params-file", str(REPO / "config" / "gear_learn.yaml"),
               "-p", f"learner_node:out_dir:={tmp_path / 'run'}", "-p", "learner_node:server_timeout:=60.0"]
     try:
-        with RosProcess([*common, "-p", "learner_node:goal:=[0.52,0.03,0.05]"], domain,
+        with RosProcess([*common, "-p", "learner_node:goal:=[0.52,0.03,0.05]",
+                         "-p", f"learner_node:init_checkpoint:={tmp_path / 'sim.pt'}"], domain,
                         tmp_path / "learner.log") as lrn:  # no arm: it publishes, then waits for the server
             assert probe.spin_until(lambda: bool(policies), 90), lrn.log()
             assert list(policies[0][1].x_ref) == pytest.approx(goal)
             assert json.loads((tmp_path / "run" / "config.json").read_text())["goal"] == pytest.approx(goal)
+            published = PolicyParameters.from_msg(policies[0][1])
+            np.testing.assert_allclose(published.stiffness, sim.to_params().stiffness, rtol=1e-12)
+            # the flow's landscape moves with the goal: same normalised weights (flow_input_scale)
+            arch, scale = sim.flow.arch, cfg.flow_input_scale
+            normalised = rescale_flow_weights(arch, sim.to_params().weights, [0.5, 0.0, 0.07], scale, inverse=True)
+            np.testing.assert_allclose(published.weights, rescale_flow_weights(arch, normalised, goal, scale),
+                                       rtol=1e-12, atol=1e-12)
+            assert policies[0][1].version == 0 and f"starting a new run from {tmp_path / 'sim.pt'}" in lrn.log()
     finally:
         probe.close()
     with RosProcess([*common, "-p", "learner_node:goal:=[0.5,0.0]"], domain, tmp_path / "bad.log") as bad:
         assert wait_exit(bad, 90) == 2, bad.log()
         assert "goal" in bad.log()
+    with RosProcess([*common, "-p", f"learner_node:init_checkpoint:={tmp_path / 'none.pt'}"], domain,
+                    tmp_path / "none.log") as bad:  # the run folder has no checkpoint of its own yet
+        assert wait_exit(bad, 90) == 2, bad.log()
+        assert f"not starting: init_checkpoint {tmp_path / 'none.pt'}: no such file" in bad.log()
 
 
 def test_learner_killed_mid_iteration_holds_the_arm_and_resumes_without_losing_an_iteration(tmp_path):

@@ -4,10 +4,16 @@ itself against franky-sim is tests/test_franka_ros.py's learning test and the co
 from __future__ import annotations
 
 import io
+import json
+from pathlib import Path
 
 import pytest
 
 from nf_bringup.robot_run import FRANKY_GOAL, Progress, _parse, robot_commands
+from nf_bringup.run_summary import write_summary
+
+CONFIGS = [f"--config={Path(__file__).resolve().parents[1] / 'config' / 'gear_learn.yaml'}",
+           f"--hardware-config={Path(__file__).resolve().parents[1] / 'config' / 'franka.yaml'}"]
 
 
 def _value(argv: list[str], key: str) -> str:
@@ -45,3 +51,38 @@ def test_progress_says_the_time_left():
     assert "iteration 1/20: 96 s per iteration, about 30 min left" in out.getvalue()
     progress("[learner] prior: 1 of 1 rollouts not done yet")  # not an iteration line
     assert out.getvalue().count("\n") == 1
+
+
+def test_from_checkpoint_reaches_the_learner_and_the_summary_says_where_the_prior_came_from(tmp_path, capsys,
+                                                                                          monkeypatch):
+    """``--from-checkpoint`` (issue 30): the learner's init_checkpoint, absolute, beside the cell's goal;
+    a missing file stops the command before anything starts, unless the run folder has its own
+    checkpoint (the learner resumes that one); summary.md names the checkpoint the prior came from."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sim").mkdir()
+    (tmp_path / "sim" / "checkpoint.pt").write_bytes(b"")
+    args = _parse([*CONFIGS, "--out", "run", "--from-checkpoint", "sim/checkpoint.pt", "--iterations", "2"])
+    learner = robot_commands(args, args.out, record=False)["learner"]
+    assert _value(learner, "learner_node:init_checkpoint") == str(tmp_path / "sim" / "checkpoint.pt")
+    assert _value(learner, "learner_node:goal") == "[" + ",".join(repr(float(v)) for v in FRANKY_GOAL) + "]"
+    assert _value(learner, "learner_node:iterations") == "2"
+    plain = robot_commands(_parse([*CONFIGS, "--out", "x"]), tmp_path, record=False)["learner"]
+    assert not any("init_checkpoint" in a for a in plain)
+    with pytest.raises(SystemExit):
+        _parse([*CONFIGS, "--out", "run", "--from-checkpoint", "nowhere.pt"])
+    assert "--from-checkpoint nowhere.pt: no such file" in capsys.readouterr().err
+    (tmp_path / "run" / "learner").mkdir(parents=True)
+    (tmp_path / "run" / "learner" / "checkpoint.pt").write_bytes(b"")  # its own: resumed, the other not read
+    assert _parse([*CONFIGS, "--out", "run", "--from-checkpoint", "nowhere.pt"]).from_checkpoint.name == "nowhere.pt"
+    (tmp_path / "run" / "learner" / "checkpoint.pt").unlink()
+    started = {"checkpoint": str(tmp_path / "sim" / "checkpoint.pt"), "iteration": 30, "task": "gear",
+               "x_ref": [0.5, 0.0, 0.07]}
+    for name, iteration in (("evaluation_prior.json", 0), ("evaluation.json", 2)):
+        (tmp_path / "run" / "learner" / name).write_text(json.dumps(
+            {"episodes": 10, "iteration": iteration, "success_rate": 0.5, "final_distance_mean": 0.01,
+             "return_mean": -1.0, "started_from": started}))
+    (tmp_path / "run" / "learner" / "config.json").write_text(json.dumps({"task": "gear", "goal": list(FRANKY_GOAL)}))
+    summary = write_summary(tmp_path / "run", tmp_path / "c.yaml", 60.0, 0, how="franky-sim").read_text()
+    assert (f"Started from `{started['checkpoint']}` (after iteration 30 of a gear run, goal [0.5, 0.0, 0.07]): the "
+            "prior is that policy, unchanged but for this run's goal [0.5, 0.0, 0.05]") in summary
+    assert f"| the prior, started from {started['checkpoint']} (before iteration 1) | 10 |" in summary

@@ -4,17 +4,21 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from learner_node.config import TrainConfig
+from learner_node.flow import rescale_flow_weights
 from learner_node.rollout import RolloutRunner
 from learner_node.train_cli import main as train_main
 from learner_node.trainer import (
     CHECKPOINT,
+    CHECKPOINT_FORMAT,
     EVAL_SEED_BASE,
     EVALUATION_FILE,
     PRIOR_EVALUATION_FILE,
@@ -29,6 +33,8 @@ from nf_core.reward import REWARD_TERMS, RewardWeights, reward_terms
 
 TINY = {"task": "block", "iterations": 2, "rollouts_per_iter": 3, "episode_seconds": 0.2, "minibatch_size": 16,
         "update_epochs": 2, "eval_episodes": 2}
+GEAR_LEARN = Path(__file__).resolve().parents[1] / "config" / "gear_learn.yaml"
+GEAR_TINY = {"iterations": 1, "rollouts_per_iter": 2, "episode_seconds": 0.05, "eval_episodes": 1}
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -171,6 +177,96 @@ def test_an_mlp_checkpoint_ignores_flow_settings(tmp_path):
     assert resumed.iteration == 1
     with pytest.raises(ValueError, match="mlp_hidden"):
         Trainer(TrainConfig(**{**TINY, "policy": "mlp", "mlp_hidden": 8})).load_checkpoint(tmp_path / CHECKPOINT)
+
+
+def test_a_new_run_starts_from_another_runs_checkpoint_with_its_own_goal(tmp_path, caplog):
+    """init_checkpoint (issue 30): a policy learned in simulation starts a run on a cell whose goal
+    differs. Loaded: the flow, S, D and the exploration spread as the checkpoint left them (not the
+    config's param_sigma_*); fresh: the iteration, optimiser and metrics; x_ref is the new goal. The
+    prior evaluated first is that policy and says where it came from; rerun, the run resumes its own."""
+    source = Trainer(TrainConfig.from_sources(GEAR_LEARN, GEAR_TINY), tmp_path / "sim")
+    source.run(evaluate=False)
+    ckpt = tmp_path / "sim" / CHECKPOINT
+    goal = [0.52, 0.03, 0.05]  # the simulated gear's is [0.5, 0, 0.07]
+    cfg = TrainConfig.from_sources(GEAR_LEARN, {**GEAR_TINY, "goal": goal, "init_checkpoint": str(ckpt)})
+    run = Trainer(cfg, tmp_path / "robot")
+    note = run.resume_or_init()
+    assert note.startswith(f"starting a new run from {ckpt}") and "x_ref [0.52, 0.03, 0.05]" in note
+    assert run.iteration == 0 and run.history == [] and run.optimizer.state_dict()["state"] == {}
+    mine, theirs = run.policy.to_params(), source.policy.to_params()
+    # the landscape belongs to the goal (the nets see (x - x_ref) / flow_input_scale): the same
+    # normalised weights, physical ones moved with the goal
+    arch, scale = run.policy.flow.arch, cfg.flow_input_scale
+    assert scale > 0 and not np.allclose(mine.weights, theirs.weights)
+    np.testing.assert_allclose(rescale_flow_weights(arch, mine.weights, goal, scale, inverse=True),
+                               rescale_flow_weights(arch, theirs.weights, theirs.x_ref, scale, inverse=True),
+                               atol=1e-12)
+    x = np.array([[0.01, -0.02, 0.03], [0.0, 0.0, 0.0], [-0.03, 0.01, 0.02]])  # offsets from the goal, m
+    with torch.no_grad():  # phi(x_ref + e) - phi(x_ref) is the same landscape around either goal
+        mov, src = run.policy.flow, source.policy.flow
+        a = mov(torch.as_tensor(goal + x)) - mov(torch.as_tensor(np.array([goal])))
+        b = src(torch.as_tensor(theirs.x_ref + x)) - src(torch.as_tensor(theirs.x_ref[None]))
+    np.testing.assert_allclose(a.numpy(), b.numpy(), atol=5e-3)
+    np.testing.assert_allclose(mine.stiffness, theirs.stiffness, rtol=1e-12)
+    np.testing.assert_allclose(mine.damping, theirs.damping, rtol=1e-12)
+    assert not np.allclose(np.diag(mine.stiffness), cfg.stiffness)  # learned, not the config's 300 N/m
+    np.testing.assert_array_equal(mine.log_std, theirs.log_std)
+    np.testing.assert_allclose(mine.x_ref, goal)
+    np.testing.assert_allclose(theirs.x_ref, [0.5, 0.0, 0.07])
+    for name in ("log_sigma_gains", "log_sigma_flow"):  # the spread goes on, decayed: not param_sigma_*
+        assert torch.equal(getattr(run.explorer, name), getattr(source.explorer, name)), name
+    assert float(torch.exp(run.explorer.log_sigma_gains.detach()).max()) < cfg.param_sigma_gains
+    centre = run.explorer.params_for(run.explorer.mean().detach().numpy())  # draws centre on the loaded flow
+    np.testing.assert_allclose(centre.weights, mine.weights, rtol=0, atol=1e-12)
+    # the CLI: the prior is the loaded policy (the zero-shot result) and says so; the same command resumes
+    sets = [f"--set={k}={v}" for k, v in GEAR_TINY.items()]
+    cli = ["--config", str(GEAR_LEARN), "--out", str(tmp_path / "cli"), "--init-checkpoint", str(ckpt),
+           "--set=goal=0.52,0.03,0.05", "--no-progress", *sets]
+    assert train_main(cli) == 0
+    prior = json.loads((tmp_path / "cli" / PRIOR_EVALUATION_FILE).read_text())
+    assert prior["iteration"] == 0 and prior["started_from"]["checkpoint"] == str(ckpt.resolve())
+    assert prior["per_episode"] == run.evaluate()["per_episode"]
+    assert json.loads((tmp_path / "cli" / EVALUATION_FILE).read_text())["started_from"] == prior["started_from"]
+    assert run_evaluations(tmp_path / "cli")[0][0] == f"the prior, started from {ckpt.resolve()} (before iteration 1)"
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        assert train_main(cli) == 0
+    assert f"resuming from {tmp_path / 'cli' / CHECKPOINT} after iteration 1" in caplog.text
+    assert "the run folder's own checkpoint wins" in caplog.text
+
+
+def test_init_checkpoint_refuses_another_architecture_and_a_missing_file(tmp_path, capsys):
+    Trainer(TrainConfig(**{**TINY, "iterations": 1}), tmp_path / "a").run(evaluate=False)
+    ckpt = str(tmp_path / "a" / CHECKPOINT)
+    for change, message in (({"n_hidden": 4}, "n_hidden: checkpoint 8 vs now 4"),
+                            ({"activation": "tanh"}, "activation: checkpoint 'gelu' vs now 'tanh'"),
+                            ({"policy": "mlp"}, "policy: checkpoint 'nf' vs now 'mlp'"),
+                            ({"task": "gear"}, r"dimension: checkpoint 2 \(task block\) vs now 3 \(task gear\)")):
+        trainer = Trainer(TrainConfig(**{**TINY, **change, "init_checkpoint": ckpt}), tmp_path / "b")
+        with pytest.raises(ValueError, match=f"another architecture than this config's .*{message}"):
+            trainer.resume_or_init()
+    (tmp_path / "junk.pt").write_text("not a checkpoint")
+    for path, message in ((tmp_path / "none.pt", "no such file"), (tmp_path / "junk.pt", "not a readable checkpoint"),
+                          (tmp_path / "a", "is not a file")):
+        with pytest.raises(ValueError, match=message):
+            Trainer(TrainConfig(**{**TINY, "init_checkpoint": str(path)}), tmp_path / "b").resume_or_init()
+    sets = [f"--set={k}={v}" for k, v in TINY.items() if k != "task"]
+    assert train_main(["--task", "block", "--out", str(tmp_path / "c"), "--init-checkpoint", str(tmp_path / "none.pt"),
+                       "--no-progress", *sets]) == 2
+    assert f"init_checkpoint {tmp_path / 'none.pt'}: no such file" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists() and not (tmp_path / "c").exists()  # refused before anything is written
+    # an MLP policy moves with its goal by itself (it sees x - x_ref): loaded as learned
+    Trainer(TrainConfig(**{**TINY, "policy": "mlp", "iterations": 1}), tmp_path / "m").run(evaluate=False)
+    mlp = Trainer(TrainConfig(**{**TINY, "policy": "mlp", "goal": [0.1, 0.2],
+                                 "init_checkpoint": str(tmp_path / "m" / CHECKPOINT)}))
+    assert "action noise std" in mlp.resume_or_init()
+    theirs = torch.load(tmp_path / "m" / CHECKPOINT, weights_only=True)
+    assert theirs["format"] == CHECKPOINT_FORMAT
+    for key, value in mlp.policy.state_dict().items():
+        if key == "x_ref":
+            np.testing.assert_allclose(value.numpy(), [0.1, 0.2])
+        else:
+            assert torch.equal(value, theirs["policy"][key]), key
 
 
 def test_value_baseline_and_mlp_policy_iterations_run(tmp_path):

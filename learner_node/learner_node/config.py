@@ -177,6 +177,15 @@ class TrainConfig:
     None: the simulated task's goal (gear and peg [0.5, 0, 0.07]). On a real cell, the goal measured
     there (the Franka driver's ``goal``): the simulated one would aim at wherever the simulated
     fixture happens to be."""
+    init_checkpoint: str = ""
+    """A new run that starts from another run's policy: that run's ``checkpoint.pt`` ('': the policy as
+    the settings above initialise it). Loaded as learned: the flow weights, S and D, and the exploration
+    spread as the checkpoint left it (the action noise's log-std; with exploration=params the parameter
+    stds, decayed and learned, not ``param_sigma_*``: fine-tuning explores near the policy). Fresh: the
+    iteration counter, optimiser, baseline, random streams, metrics and run folder. x_ref is this run's
+    goal (``goal``, else the task's), never the checkpoint's. Its architecture (policy; n_flow, n_hidden,
+    activation or mlp_hidden, mlp_activation; the task's dimension) must be this config's. Read only if
+    the run folder has no checkpoint of its own (that one is resumed)."""
 
     def __post_init__(self) -> None:
         self._coerce_types()
@@ -244,6 +253,9 @@ class TrainConfig:
         _int_range("update_epochs", self.update_epochs, 1, 10_000)
         _int_range("minibatch_size", self.minibatch_size, 1, 10_000_000)
         _int_range("eval_episodes", self.eval_episodes, 0, 100_000)
+        if self.init_checkpoint != self.init_checkpoint.strip():
+            raise ValueError(f"init_checkpoint must be a path without leading or trailing spaces, "
+                             f"got {self.init_checkpoint!r}")
         if self.goal is not None and len(self.goal) != self.dim:
             raise ValueError(f"goal must have {self.dim} values (m) for the {self.task} task, got {self.goal}")
         if not 0.0 < self.clip_coef < 1.0:

@@ -12,8 +12,10 @@ the same file and seed draw the same starts and noise. ``out_dir`` gets the same
 checkpoint and evaluation files as ``train``, and (``evaluate_prior``) ``evaluation_prior.json``:
 the deterministic prior on the same held-out starts before the first iteration, so a run shows
 what it learned against where it began. A restarted learner resumes from the checkpoint
-and repeats the interrupted iteration with the same seeds. Episodes that fail or arrive
-incomplete are reported and retried with the same seeds, then dropped.
+and repeats the interrupted iteration with the same seeds. ``init_checkpoint`` starts a new run
+from another run's policy (a simulation checkpoint on the robot path) with this run's goal; the
+prior's evaluation is then that policy's, and the run folder's own checkpoint, once there, wins.
+Episodes that fail or arrive incomplete are reported and retried with the same seeds, then dropped.
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ from .trainer import (
     _atomic_write,
     _json_float,
     episode_summary,
+    prior_origin,
 )
 
 LOG = logging.getLogger("learner_node")
@@ -366,12 +369,12 @@ class RosTraining:
         self.dropped = 0
         self._discovered_at = 0.0
         self.arms_log: dict[str, Any] = {"arms": {}, "batches": []}
-        checkpoint = self.out_dir / CHECKPOINT
-        if checkpoint.exists():
-            self.trainer.load_checkpoint(checkpoint)
-            LOG.info("resuming from %s after iteration %d", checkpoint, self.trainer.iteration)
-            if (self.out_dir / ARMS_FILE).exists():
-                self.arms_log = json.loads((self.out_dir / ARMS_FILE).read_text())
+        resuming = (self.out_dir / CHECKPOINT).exists()
+        note = self.trainer.resume_or_init()  # the run folder's own checkpoint, else init_checkpoint
+        if note:
+            LOG.info("%s", note)
+        if resuming and (self.out_dir / ARMS_FILE).exists():
+            self.arms_log = json.loads((self.out_dir / ARMS_FILE).read_text())
 
     # ------------------------------------------------------------------ arms
     def usable_arms(self) -> list[ArmLink]:
@@ -524,7 +527,8 @@ class RosTraining:
                  trainer.iteration + 1, cfg.iterations, cfg.rollouts_per_iter, self.out_dir)
         if trainer.iteration == 0 and self.node.settings["evaluate_prior"] \
                 and not (self.out_dir / PRIOR_EVALUATION_FILE).exists():
-            LOG.info("the prior first: deterministic, on the held-out starts of the final evaluation")
+            LOG.info("the prior%s first: deterministic, on the held-out starts of the final evaluation",
+                     prior_origin(trainer.started_from))
             if self.evaluate(version, PRIOR_EVALUATION_FILE, "prior"):
                 LOG.error("no episode of the prior's evaluation completed: training goes on without it")
             if self.stop.is_set():
@@ -577,6 +581,8 @@ class RosTraining:
         if not recs:
             return 1
         out: dict[str, Any] = {"episodes": len(recs), "iteration": self.trainer.iteration, "over_ros": True}
+        if self.trainer.started_from is not None:
+            out["started_from"] = self.trainer.started_from
         out.update(episode_summary(recs))
         out["per_episode"] = [{"start_seed": r.start_seed, "return": r.episode_return, "success": r.final_success,
                                "final_distance": r.final_distance, "max_depth": float(r.depth.max())} for r in recs]
@@ -586,11 +592,22 @@ class RosTraining:
         return 0
 
 
+def _work(node: LearnerNode, stop: threading.Event) -> int:
+    """The learner's main thread: the training over ROS; exit code 2 when its start is refused (a
+    checkpoint to resume or to start from that does not fit the settings, a missing one)."""
+    try:
+        training = RosTraining(node, stop)
+    except ValueError as exc:
+        LOG.error("not starting: %s", exc)
+        return 2
+    return training.run()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console script ``learner``: NF-PPO over ROS 2 until the configured iterations are done."""
     logging.basicConfig(level=logging.INFO, format="[learner] %(message)s", stream=sys.stdout)
     return run_node(LearnerNode, "learner", __doc__.split("\n\n")[0], argv,
-                    work=lambda node, stop: RosTraining(node, stop).run(), make_executor=SingleThreadedExecutor,
+                    work=_work, make_executor=SingleThreadedExecutor,
                     epilog="Settings follow --ros-args, e.g. --ros-args --params-file config/gear.yaml "
                            "-p learner_node:out_dir:=runs/x")
 

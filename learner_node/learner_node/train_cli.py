@@ -2,7 +2,8 @@
 
 Settings: defaults < ``--config`` (a task's ROS 2 parameters YAML) < the flags below < ``--set``.
 If ``OUT/checkpoint.pt`` exists the run resumes from it (raise ``--iterations`` to extend a run);
-``--fresh`` starts over instead.
+``--fresh`` starts over instead. ``--init-checkpoint PATH`` (the setting ``init_checkpoint``) starts a
+new run from another run's policy, with this run's goal (``TrainConfig.init_checkpoint``).
 """
 
 from __future__ import annotations
@@ -27,6 +28,10 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--out", type=Path, required=True, help="output directory (metrics, checkpoint, evaluation)")
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                     help="any other TrainConfig setting, e.g. --set rollouts_per_iter=8 (repeatable)")
+    ap.add_argument("--init-checkpoint", type=Path, metavar="PATH",
+                    help="start a new run from another run's checkpoint.pt: its flow, S, D and exploration spread, "
+                         "with this run's goal and a fresh iteration count (an existing OUT/checkpoint.pt resumes "
+                         "instead)")
     ap.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint in --out and start over")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     ap.add_argument("--no-eval", action="store_true", help="skip the evaluations (the prior's and the final)")
@@ -45,10 +50,10 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("learner_node").setLevel(logging.DEBUG)
     overrides: dict[str, object] = {}
     for flag, key in (("task", "task"), ("policy", "policy"), ("sigma_init", "sigma_init"), ("seed", "seed"),
-                      ("iterations", "iterations")):
+                      ("iterations", "iterations"), ("init_checkpoint", "init_checkpoint")):
         value = getattr(args, flag)
         if value is not None:
-            overrides[key] = value
+            overrides[key] = str(value) if isinstance(value, Path) else value
     for item in args.sets:
         key, sep, value = item.partition("=")
         if not sep:
@@ -62,13 +67,13 @@ def main(argv: list[str] | None = None) -> int:
                                 overrides["task"], yaml_task, args.config)
         cfg = TrainConfig.from_sources(args.config, overrides)
         trainer = Trainer(cfg, args.out, progress=not args.no_progress)
-        ckpt = args.out / CHECKPOINT
-        if ckpt.exists() and not args.fresh:
-            try:
-                trainer.load_checkpoint(ckpt)
-            except ValueError as exc:
-                raise ValueError(f"cannot resume from {ckpt}: {exc}; use --fresh or another --out") from None
-            logging.info("resuming from %s after iteration %d", ckpt, trainer.iteration)
+        resuming = (args.out / CHECKPOINT).exists() and not args.fresh
+        try:
+            note = trainer.resume_or_init(fresh=args.fresh)
+        except ValueError as exc:
+            raise ValueError(f"{exc}; use --fresh or another --out" if resuming else str(exc)) from None
+        if note:
+            logging.info("%s", note)
     except ValueError as exc:
         print(f"train: error: {exc}", file=sys.stderr)
         return 2

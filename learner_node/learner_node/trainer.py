@@ -51,8 +51,11 @@ EVALUATION_FILE = "evaluation.json"  # the deterministic controller on the held-
 PRIOR_EVALUATION_FILE = "evaluation_prior.json"  # the same before iteration 1
 CHECKPOINT_FORMAT = 1
 EVAL_SEED_BASE = 1_000_000_000  # held-out evaluation starts: seeds >= this; training seeds are below
-# settings that may differ between a checkpoint and the run that resumes it
-RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes"})
+# settings that may differ between a checkpoint and the run that resumes it (init_checkpoint is
+# read only by a run's start: a resumed run continues from its own checkpoint whatever it says)
+RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes", "init_checkpoint"})
+# the settings that shape a policy's parameters, per policy type (with the task's dimension)
+ARCHITECTURE = {"nf": ("n_flow", "n_hidden", "activation"), "mlp": ("mlp_hidden", "mlp_activation")}
 # settings only the NF policy reads: an MLP run's checkpoint resumes whatever they are
 NF_ONLY = frozenset({"n_flow", "n_hidden", "activation", "flow_init", "stiffness", "damping", "stiffness_axial",
                      "damping_axial", "gains", "exploration", "param_sigma_gains", "param_sigma_flow", "param_lr",
@@ -75,6 +78,37 @@ def build_policy(cfg: TrainConfig, x_ref: np.ndarray) -> NFPolicy | MLPPolicy:
                         x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed,
                         flow_init=cfg.flow_init, learn_gains=cfg.gains == "learned")
     return MLPPolicy(d, cfg.mlp_hidden, cfg.mlp_activation, x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed)
+
+
+def read_checkpoint(path: str | Path, what: str = "checkpoint") -> dict[str, Any]:
+    """The contents of a checkpoint file; ``ValueError`` naming it (as ``what``) if it is missing, not a
+    checkpoint or of another format."""
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"{what} {path}: no such file")
+    if not path.is_file():
+        raise ValueError(f"{what} {path} is not a file (give the run's {CHECKPOINT})")
+    try:
+        state = torch.load(path, weights_only=True)
+    except Exception as exc:  # torch, zip and pickle errors alike: not a checkpoint we wrote
+        raise ValueError(f"{what} {path} is not a readable checkpoint: {exc}") from None
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        found = state.get("format") if isinstance(state, dict) else type(state).__name__
+        raise ValueError(f"{what} {path}: checkpoint format {found!r}, expected {CHECKPOINT_FORMAT}")
+    return state
+
+
+def architecture_differences(mine: TrainConfig, theirs: TrainConfig) -> list[str]:
+    """How the policy ``theirs`` (a checkpoint's settings) describes differs in shape from ``mine``:
+    policy type, task dimension and ``ARCHITECTURE``; empty if its parameters fit."""
+    if theirs.policy != mine.policy:
+        return [f"policy: checkpoint {theirs.policy!r} vs now {mine.policy!r}"]
+    out = []
+    if theirs.dim != mine.dim:
+        out.append(f"dimension: checkpoint {theirs.dim} (task {theirs.task}) vs now {mine.dim} (task {mine.task})")
+    out += [f"{k}: checkpoint {getattr(theirs, k)!r} vs now {getattr(mine, k)!r}"
+            for k in ARCHITECTURE[mine.policy] if getattr(theirs, k) != getattr(mine, k)]
+    return out
 
 
 def make_evaluator(policy: NFPolicy | MLPPolicy) -> FlowEvaluator | MLPEvaluator:
@@ -126,10 +160,10 @@ class Trainer:
         self.value_net: ValueNetwork | None = None
         self.explorer: ParamExploration | None = None
         self._pending: np.ndarray | None = None  # params exploration: this iteration's parameter draws
+        # init_checkpoint: the checkpoint this run's policy came from (path, its iteration, task, x_ref)
+        self.started_from: dict[str, Any] | None = None
         if cfg.policy == "nf" and cfg.exploration == "params":
-            self.explorer = ParamExploration(self.policy, cfg.param_sigma_gains, cfg.param_sigma_flow,
-                                             cfg.flow_input_scale, cfg.param_flow, cfg.param_flow_dim, cfg.seed)
-            self.optimizer = make_param_optimizer(self.explorer, cfg.param_lr, cfg.param_sigma_lr, cfg.param_lr_flow)
+            self._explore_params()
         else:
             if cfg.baseline == "value":
                 self.value_net = ValueNetwork(2 * cfg.dim, cfg.value_hidden, seed=cfg.seed)
@@ -140,6 +174,13 @@ class Trainer:
         self.rng = np.random.default_rng(cfg.seed)
         self.iteration = 0  # completed iterations
         self.history: list[dict[str, float]] = []
+
+    def _explore_params(self) -> None:
+        """The parameter exploration around the policy as it is now, and its optimiser."""
+        cfg = self.cfg
+        self.explorer = ParamExploration(self.policy, cfg.param_sigma_gains, cfg.param_sigma_flow,
+                                         cfg.flow_input_scale, cfg.param_flow, cfg.param_flow_dim, cfg.seed)
+        self.optimizer = make_param_optimizer(self.explorer, cfg.param_lr, cfg.param_sigma_lr, cfg.param_lr_flow)
 
     # ------------------------------------------------------------------ one iteration
     def episode_seeds(self) -> list[tuple[int, int]]:
@@ -289,6 +330,8 @@ class Trainer:
         if not recs:
             return {"episodes": 0}
         out: dict[str, Any] = {"episodes": n, "iteration": self.iteration}
+        if self.started_from is not None:
+            out["started_from"] = self.started_from
         out.update(episode_summary(recs))
         out["per_episode"] = [
             {"start_seed": r.start_seed, "return": r.episode_return, "success": r.final_success,
@@ -312,6 +355,7 @@ class Trainer:
             "rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
             "history": self.history,
+            "started_from": self.started_from,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -337,6 +381,7 @@ class Trainer:
         torch.set_rng_state(state["torch_rng"])
         self.iteration = int(state["iteration"])
         self.history = [dict(r) for r in state["history"]]
+        self.started_from = state.get("started_from")
 
     def save_checkpoint(self, path: str | Path) -> None:
         """Write the checkpoint atomically (temporary file, then rename)."""
@@ -348,6 +393,120 @@ class Trainer:
     def load_checkpoint(self, path: str | Path) -> None:
         """Resume from a checkpoint file."""
         self.load_state_dict(torch.load(Path(path), weights_only=True))
+
+    def init_from_checkpoint(self, path: str | Path) -> str:
+        """Start this new run from another run's policy (``TrainConfig.init_checkpoint``): its flow
+        weights, S, D and exploration spread; x_ref stays this run's goal, and the iteration counter,
+        optimiser, baseline, random streams and metrics stay fresh. Refuses (``ValueError``) a missing
+        file and a policy of another architecture; returns a line for the log."""
+        if self.iteration or self.history:
+            raise RuntimeError("init_from_checkpoint starts a new run: this one has iterations already")
+        state = read_checkpoint(path, "init_checkpoint")
+        try:
+            theirs = TrainConfig(**TrainConfig.with_defaults(state["config"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"init_checkpoint {path}: its settings are unreadable ({exc})") from None
+        diff = architecture_differences(self.cfg, theirs)
+        if diff:
+            raise ValueError(f"init_checkpoint {path} holds a policy of another architecture than this config's "
+                             f"({'; '.join(diff)}): start from a checkpoint of this architecture or use its settings")
+        source = build_policy(theirs, np.zeros(theirs.dim))
+        try:
+            source.load_state_dict(state["policy"])
+        except (KeyError, RuntimeError) as exc:
+            raise ValueError(f"init_checkpoint {path}: its policy does not match its own settings ({exc})") from None
+        self._load_policy(source, path, theirs.flow_input_scale)
+        if self.explorer is None:
+            spread = [f"action noise std {float(torch.exp(self.policy.log_std.detach()).mean()):.3g} N"]
+        else:
+            spread = self._continue_spread(state.get("explorer") or {})
+        self.started_from = {"checkpoint": str(Path(path).resolve()), "iteration": int(state["iteration"]),
+                             "task": theirs.task, "x_ref": [round(v, 6) for v in source.x_ref.tolist()]}
+        return (f"starting a new run from {path} (after iteration {state['iteration']} of a {theirs.task} "
+                f"{theirs.policy}-PPO run): its {'flow, S, D' if theirs.policy == 'nf' else 'weights'} and "
+                f"exploration spread ({', '.join(spread)}); x_ref "
+                f"{np.round(self.x_ref, 4).tolist()} is this run's goal (the checkpoint's: "
+                f"{np.round(source.x_ref.numpy(), 4).tolist()}); iteration counter, optimiser, baseline, random "
+                "streams and metrics start fresh")
+
+    def _load_policy(self, source: NFPolicy | MLPPolicy, path: str | Path, their_scale: float) -> None:
+        """Copy ``source``'s learned parameters (its run's ``flow_input_scale``: ``their_scale``) into this
+        run's policy, whose x_ref stays."""
+        pol = self.policy
+        if source.log_std.shape != pol.log_std.shape:
+            raise ValueError(f"init_checkpoint {path}: log_std of shape {tuple(source.log_std.shape)}, "
+                             f"this policy's is {tuple(pol.log_std.shape)}")
+        with torch.no_grad():
+            if isinstance(pol, NFPolicy) and isinstance(source, NFPolicy):
+                S, D = source.gains()  # learned or fixed, as the controller ran them
+                if pol.learn_gains and not all(bool(torch.equal(m, torch.diag(torch.diagonal(m)))) for m in (S, D)):
+                    raise ValueError(f"init_checkpoint {path}: S or D is not diagonal; gains=learned needs diagonals")
+                pol.flow.load_flat(self._moved_flow(source, their_scale))
+                pol.S.copy_(S)
+                pol.D.copy_(D)
+                if pol.learn_gains:
+                    pol.ln_s.copy_(torch.log(torch.diagonal(S)))
+                    pol.ln_d.copy_(torch.log(torch.diagonal(D)))
+            elif isinstance(pol, MLPPolicy) and isinstance(source, MLPPolicy):
+                pol.layers.load_state_dict(source.layers.state_dict())
+            else:
+                raise ValueError(f"init_checkpoint {path}: a {type(source).__name__}, this run's policy is a "
+                                 f"{type(pol).__name__}")
+            pol.log_std.copy_(source.log_std)
+
+    def _moved_flow(self, source: NFPolicy, their_scale: float) -> np.ndarray:
+        """``source``'s flow weights for this run's goal. With ``flow_input_scale`` (both runs) the nets
+        see ``(x - x_ref) / scale``: the learned landscape belongs to the goal (the shaft), so its
+        normalised weights are kept and the physical ones follow the goal (the bias of each net's first
+        layer moves). Otherwise the weights are kept as learned, in metres of the base frame."""
+        flat = source.flow.to_flat()
+        theirs, mine = their_scale, self.cfg.flow_input_scale
+        if theirs > 0.0 and mine > 0.0:
+            arch = self.policy.flow.arch
+            normalised = rescale_flow_weights(arch, flat, source.x_ref.detach().numpy(), theirs, inverse=True)
+            flat = rescale_flow_weights(arch, normalised, np.asarray(self.x_ref, dtype=float), mine)
+        return flat
+
+    def _continue_spread(self, stored: dict[str, Any]) -> list[str]:
+        """Parameter exploration around the loaded policy, with the checkpoint's stds where it has them
+        (``stored``: its explorer's state), and a new optimiser; returns the stds, for the log."""
+        self._explore_params()  # centred on the loaded flow and gains, in this run's coordinates
+        assert self.explorer is not None
+        out = []
+        with torch.no_grad():
+            for name, label in (("log_sigma_gains", "ln S, ln D"), ("log_sigma_flow", "flow")):
+                mine = getattr(self.explorer, name)
+                if not mine.numel():
+                    continue
+                theirs = stored.get(name)
+                kept = theirs is not None and tuple(theirs.shape) == tuple(mine.shape)
+                if kept:
+                    mine.copy_(theirs)
+                whose = "the checkpoint's" if kept else "this config's: the checkpoint has none"
+                out.append(f"{label} std {float(torch.exp(mine).mean()):.3g} ({whose})")
+        cfg = self.cfg  # the optimiser's steps follow the stds (make_param_optimizer)
+        self.optimizer = make_param_optimizer(self.explorer, cfg.param_lr, cfg.param_sigma_lr, cfg.param_lr_flow)
+        return out
+
+    def resume_or_init(self, fresh: bool = False) -> str | None:
+        """How a run starts: from the run folder's own checkpoint if it has one (unless ``fresh``), else from
+        ``cfg.init_checkpoint`` if set, else as initialised. Returns a line for the log (None: the last)."""
+        own = None if self.out_dir is None else self.out_dir / CHECKPOINT
+        if own is not None and own.exists() and not fresh:
+            try:
+                self.load_checkpoint(own)
+            except ValueError as exc:
+                raise ValueError(f"cannot resume from {own}: {exc}") from None
+            note = f"resuming from {own} after iteration {self.iteration}"
+            if self.started_from is not None:
+                note += f" (the run started from {self.started_from['checkpoint']})"
+            if self.cfg.init_checkpoint:
+                note += (f"; init_checkpoint {self.cfg.init_checkpoint} is not read: the run folder's own "
+                         "checkpoint wins")
+            return note
+        if self.cfg.init_checkpoint:
+            return self.init_from_checkpoint(self.cfg.init_checkpoint)
+        return None
 
     # ------------------------------------------------------------------ the run
     def write_metrics(self) -> None:
@@ -376,9 +535,9 @@ class Trainer:
         if evaluate and evaluate_prior and self.cfg.eval_episodes and self.iteration == 0 \
                 and self.out_dir is not None and not (self.out_dir / PRIOR_EVALUATION_FILE).exists():
             prior = self.evaluate()
-            LOG.info("the prior (deterministic, %d held-out starts): success %.2f, return %.1f, final distance "
-                     "%.4f m", prior["episodes"], prior["success_rate"], prior["return_mean"],
-                     prior["final_distance_mean"])
+            LOG.info("the prior%s (deterministic, %d held-out starts): success %.2f, return %.1f, final distance "
+                     "%.4f m", prior_origin(self.started_from), prior["episodes"], prior["success_rate"],
+                     prior["return_mean"], prior["final_distance_mean"])
             _atomic_write(self.out_dir / PRIOR_EVALUATION_FILE, json.dumps(prior, indent=1, default=_json_float))
         bar = tqdm(total=self.cfg.iterations, initial=self.iteration, disable=not self.progress,
                    desc=f"{self.cfg.policy}/{self.cfg.task}", unit="it")
@@ -411,9 +570,14 @@ def run_evaluations(run_dir: Path) -> list[tuple[str, dict[str, Any]]]:
     for name in (PRIOR_EVALUATION_FILE, EVALUATION_FILE):
         if (run_dir / name).exists():
             e = json.loads((run_dir / name).read_text())
-            out.append(("the prior (before iteration 1)" if name == PRIOR_EVALUATION_FILE
-                        else f"learned (after iteration {e['iteration']})", e))
+            out.append((f"the prior{prior_origin(e.get('started_from'))} (before iteration 1)"
+                        if name == PRIOR_EVALUATION_FILE else f"learned (after iteration {e['iteration']})", e))
     return out
+
+
+def prior_origin(started_from: dict[str, Any] | None) -> str:
+    """", started from <checkpoint>" for a run that began from another run's policy, else ""."""
+    return "" if not started_from else f", started from {started_from['checkpoint']}"
 
 
 def _json_float(value: Any) -> Any:

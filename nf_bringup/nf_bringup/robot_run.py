@@ -5,12 +5,18 @@ folder as ``make run`` (learner files, summary.md, learning_curves.png, bag/, lo
 
     run_robot --robot franky                    # franky-sim's FR3 with our gear cell, on 127.0.0.1
     run_robot --robot 172.16.0.2 --goal X Y Z   # a real FR3 / Panda: its FCI address, the measured goal
+    run_robot --from-checkpoint runs/gear/checkpoint.pt --iterations 2   # start from a simulation policy
 
 With ``franky`` it starts the simulator first (``nf_bringup.testing.franky --gear --gear-load``, the
 shaft's mouth at the driver's default fixture position; goal [0.5, 0, 0.05]) and lets the driver
 recover reflexes by itself; on a real arm a reflex or a safe hold waits for a person (the learner
 says so and goes on once ``clear_fault`` is called). Ctrl-C stops everything cleanly; the same
 ``--out`` again resumes from the checkpoint. Each iteration prints the time left.
+
+``--from-checkpoint PATH`` starts the learner from a policy learned elsewhere (a simulation run's
+``checkpoint.pt``; the learner's ``init_checkpoint``): its flow, S, D and exploration spread with this
+cell's goal, a fresh iteration count. The prior evaluated before iteration 1 is then that policy on
+the held-out starts (the zero-shot result), the final evaluation the fine-tuned one.
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ import yaml
 
 from .processes import ManagedProcess, allocate_domain_id, ros_env
 from .run_summary import plot_curves, write_summary
-from .stack import POLICY_READY, RECORDER_READY, wait_for_recorder
+from .stack import POLICY_READY, RECORDER_READY, from_checkpoint_args, wait_for_recorder
 
 FRANKY = "franky"
 FRANKY_GOAL = (0.5, 0.0, 0.05)  # the gear cell's goal on franky-sim: 2 cm below the shaft's mouth (0.07 m)
@@ -80,7 +86,8 @@ def robot_commands(args: argparse.Namespace, run_dir: Path, record: bool) -> dic
                "-p", f"learner_node:goal:={goal}", "-p", f"learner_node:out_dir:={run_dir / 'learner'}",
                "-p", f"learner_node:iterations:={args.iterations}",
                "-p", f"learner_node:on_safe_hold:={'auto' if franky else 'wait'}",
-               "-p", f"learner_node:policy_subscribers:={2 if record else 1}", *args.learner_arg]
+               "-p", f"learner_node:policy_subscribers:={2 if record else 1}",
+               *from_checkpoint_args(args.from_checkpoint, run_dir), *args.learner_arg]
     cmds = {"arm": arm, "learner": learner}
     if record:
         cmds["recorder"] = [py, "-m", "nf_bags.record", "-o", str(run_dir / "bag")]
@@ -99,6 +106,11 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--iterations", type=int, default=DEFAULT_ITERATIONS, help="PPO iterations")
     parser.add_argument("--out", type=Path, default=None, help="run folder (default runs/robot-<date-time>)")
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: from the environment)")
+    parser.add_argument("--from-checkpoint", type=Path, default=None, metavar="PATH",
+                        help="start the learner from a policy learned elsewhere (e.g. runs/gear/checkpoint.pt of "
+                             "train --out runs/gear): its flow, S, D and spread with this cell's goal; the prior "
+                             "evaluated first is then the zero-shot result (a run folder's own checkpoint resumes "
+                             "instead)")
     parser.add_argument("--learner-arg", action="append", default=[], metavar="ARG",
                         help="extra ROS argument for the learner, e.g. -p learner_node:rollouts_per_iter:=5")
     args = parser.parse_args(argv)
@@ -108,6 +120,12 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
         yaml.safe_load(path.read_text())  # a broken file fails here, before anything moves
     if args.iterations < 1:
         parser.error("--iterations must be >= 1")
+    if args.out is None:
+        args.out = Path("runs") / time.strftime("robot-%Y%m%d-%H%M%S")
+    try:
+        from_checkpoint_args(args.from_checkpoint, args.out)  # a missing file fails here, before anything moves
+    except ValueError as exc:
+        parser.error(str(exc))
     if args.goal is None:
         if args.robot != FRANKY:
             parser.error("a real arm needs --goal X Y Z: the insertion goal measured on its cell")
@@ -118,7 +136,7 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``run_robot``."""
     args = _parse(argv)
-    run_dir = args.out or Path("runs") / time.strftime("robot-%Y%m%d-%H%M%S")
+    run_dir = args.out
     run_dir.mkdir(parents=True, exist_ok=True)
     domain_id = args.domain_id if args.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID")
                                                                       or allocate_domain_id())
@@ -127,8 +145,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     record = importlib.util.find_spec("nf_bags") is not None
     cmds = robot_commands(args, run_dir, record)
     print(f"[run] run folder {run_dir}, ROS_DOMAIN_ID {domain_id} (loopback only); robot "
-          f"{'franky-sim (gear cell)' if franky else args.robot}, goal {args.goal}; {args.iterations} iterations; "
-          "Ctrl-C stops cleanly, the same --out resumes", flush=True)
+          f"{'franky-sim (gear cell)' if franky else args.robot}, goal {args.goal}; {args.iterations} iterations"
+          + (f"; the learner starts from {args.from_checkpoint}" if args.from_checkpoint else "")
+          + "; Ctrl-C stops cleanly, the same --out resumes", flush=True)
     sim = None
     procs: dict[str, ManagedProcess] = {}
     t0 = time.monotonic()

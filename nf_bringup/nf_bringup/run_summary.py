@@ -22,6 +22,7 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
             how += f", {arms} arms under /arm0 .. /arm{arms - 1}"
     lines = [f"# Run {run_dir.name}", "", f"Stack run with `{config}` over ROS 2 ({how}), "
              f"{wall / 60:.1f} min wall time, learner exit code {exit_code}.", ""]
+    lines += origin_lines(learner, cfg)
     if cfg:
         lines += [f"Task **{cfg.get('task')}**, policy {cfg.get('policy')}-PPO, sigma_init {cfg.get('sigma_init')} N, "
                   f"seed {cfg.get('seed')}, {cfg.get('rollouts_per_iter')} rollouts of {cfg.get('episode_seconds')} s "
@@ -53,6 +54,26 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
     path = run_dir / "summary.md"
     path.write_text("\n".join(lines))
     return path
+
+
+def origin_lines(learner: Path, cfg: dict) -> list[str]:
+    """Lines for ``summary.md`` saying which checkpoint the run started from (``init_checkpoint``, as its
+    evaluations or its checkpoint record it), so a reader knows what the prior was; nothing for a run
+    from its config's initial policy."""
+    started = next((e["started_from"] for _, e in learner_evaluations(learner) if e.get("started_from")), None)
+    if started is None and (learner / "checkpoint.pt").exists():
+        import torch
+
+        try:
+            started = torch.load(learner / "checkpoint.pt", weights_only=True).get("started_from")
+        except Exception as exc:  # a broken checkpoint must not hide the run's results
+            return [f"`learner/checkpoint.pt` could not be read: {exc}", ""]
+    if not started:
+        return []
+    return [f"Started from `{started['checkpoint']}` (after iteration {started['iteration']} of a "
+            f"{started['task']} run, goal {started['x_ref']}): the prior is that policy, unchanged but for this "
+            f"run's goal {cfg.get('goal') or '(the task default)'}. The prior's evaluation is the zero-shot result, "
+            "the learned controller's the result of fine-tuning.", ""]
 
 
 def arm_lines(arms_json: Path, started: int = 0) -> list[str]:

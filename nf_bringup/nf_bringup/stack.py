@@ -16,6 +16,9 @@ With ``--arms N`` it starts N composed lockstep arms under the namespaces ``/arm
 (process names ``arm0`` ..), the learner dispatches each iteration's rollouts to all of them, and the
 one recorder records every arm's topics. Without ``--arms``: one arm without a namespace.
 
+``--from-checkpoint PATH`` starts the learner from another run's policy (its ``init_checkpoint``): the
+prior evaluated first is that policy with this run's goal; the same ``--out`` again resumes the run.
+
 Every process runs in one ROS_DOMAIN_ID with discovery on loopback only (``processes.ros_env``).
 """
 
@@ -34,6 +37,7 @@ import yaml
 from .processes import ManagedProcess, allocate_domain_id, ros_env
 from .run_summary import final_video, plot_curves, write_summary
 
+CHECKPOINT = "checkpoint.pt"  # the learner's (learner_node.trainer.CHECKPOINT), in <run>/learner/
 DEFAULT_ITERATIONS = 30  # 6-10 s each over ROS here with the recorder (composed): 4.5 min in all (README)
 # The learner starts only once the recorder subscribes to these (its "recording <topic> (" line):
 # the controller's first episode follows the learner's first policy at once, and a recorder still
@@ -109,6 +113,17 @@ def node_commands(config: Path, run_dir: Path, iterations: int, extra: Sequence[
     return cmds
 
 
+def from_checkpoint_args(checkpoint: Path | None, run_dir: Path) -> list[str]:
+    """The learner's arguments for ``--from-checkpoint``: ``init_checkpoint`` as an absolute path (the
+    learner's working directory need not be ours). ``ValueError`` if the file is missing, unless the run
+    folder has a checkpoint of its own, which the learner resumes instead."""
+    if checkpoint is None:
+        return []
+    if not checkpoint.is_file() and not (run_dir / "learner" / CHECKPOINT).exists():
+        raise ValueError(f"--from-checkpoint {checkpoint}: no such file")
+    return ["-p", f"learner_node:init_checkpoint:={checkpoint.resolve()}"]
+
+
 def wait_for_recorder(recorder: ManagedProcess, others: Sequence[ManagedProcess],
                       timeout: float = RECORDER_WAIT_SECONDS, texts: Sequence[str] = RECORDER_READY) -> bool:
     """Block until the recorder (started watching ``texts``: ``recorder_ready`` of the arms) records
@@ -133,6 +148,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--no-video", action="store_true", help="skip the rendered video of the final policy")
     parser.add_argument("--learner-arg", action="append", default=[], metavar="ARG",
                         help="extra ROS argument for the learner, e.g. -p learner_node:rollouts_per_iter:=5")
+    parser.add_argument("--from-checkpoint", type=Path, default=None, metavar="PATH",
+                        help="start the learner from another run's checkpoint.pt (its policy with this run's goal; "
+                             "the prior evaluated first is that policy)")
     parser.add_argument("--separate", action="store_true",
                         help="run the sim and the controller as two processes over topics (slower; the path of "
                              "drivers that only speak ros2_control topics) instead of composed in one")
@@ -152,6 +170,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--arms must be >= 1")
     args.arms = args.arms or 0
     run_dir = args.out or Path("runs") / time.strftime("%Y%m%d-%H%M%S")
+    try:
+        from_checkpoint = from_checkpoint_args(args.from_checkpoint, run_dir)
+    except ValueError as exc:
+        parser.error(str(exc))
     run_dir.mkdir(parents=True, exist_ok=True)
     domain_id = args.domain_id
     if domain_id is None:  # the caller's, else one of its own
@@ -159,8 +181,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     env = ros_env(domain_id, sources=False)  # the nodes run from the environment's packages (the install tree)
     print(f"[stack] run folder {run_dir}, ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']} (loopback only); "
           f"{args.iterations} iterations; Ctrl-C stops cleanly and keeps the checkpoint", flush=True)
-    cmds = node_commands(args.config, run_dir, args.iterations, args.learner_arg, composed=not args.separate,
-                         arms=args.arms)
+    cmds = node_commands(args.config, run_dir, args.iterations, [*from_checkpoint, *args.learner_arg],
+                         composed=not args.separate, arms=args.arms)
     namespaces = arm_namespaces(args.arms)
     ready, policy_lines = recorder_ready(namespaces), policy_ready(namespaces)
     arm = [n for n in cmds if n not in ("learner", "recorder")]
