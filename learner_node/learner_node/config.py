@@ -14,7 +14,7 @@ import dataclasses
 import math
 import types
 import typing
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +22,7 @@ import numpy as np
 import yaml
 
 from nf_core.flow_spec import ACTIVATIONS, FLOW_INITS
+from nf_core.friction import FrictionRanges
 from nf_core.reward import DEFAULT_WEIGHTS
 
 TASKS = ("gear", "peg", "block")
@@ -170,6 +171,13 @@ class TrainConfig:
     """Reward weight of the squared TCP speed |xdot|^2 (m/s)."""
     reward_action: float = DEFAULT_WEIGHTS.action
     """Reward weight of the squared action force |u|^2 (N)."""
+    friction_coulomb: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    """Simulation: Coulomb joint friction (MuJoCo frictionloss) [lo, hi], Nm (block: N), drawn per joint
+    uniformly for every episode from its start seed (``nf_core.friction``), held-out evaluation starts
+    included; shared (``/**``): the sim node applies the same draw over ROS. [0, 0]: none (the default)."""
+    friction_viscous: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    """Simulation: viscous joint friction [lo, hi], Nm s/rad, added to the arm's own damping, drawn like
+    ``friction_coulomb`` (same stream, after it). [0, 0]: none (the default)."""
     eval_episodes: int = 10
     """Final evaluation: episodes of the deterministic controller from held-out starts (1 if start=fixed)."""
     goal: list[float] | None = None
@@ -253,6 +261,11 @@ class TrainConfig:
         _int_range("update_epochs", self.update_epochs, 1, 10_000)
         _int_range("minibatch_size", self.minibatch_size, 1, 10_000_000)
         _int_range("eval_episodes", self.eval_episodes, 0, 100_000)
+        friction = self.friction_ranges()  # ValueError naming the range
+        if friction.randomized and self.start == "fixed":
+            raise ValueError("friction_coulomb / friction_viscous are drawn from each episode's start seed; with "
+                             "start: fixed there is none (every episode would get the ranges' middles): use "
+                             "start: random, or give each range one value ([x, x])")
         if self.init_checkpoint != self.init_checkpoint.strip():
             raise ValueError(f"init_checkpoint must be a path without leading or trailing spaces, "
                              f"got {self.init_checkpoint!r}")
@@ -282,6 +295,10 @@ class TrainConfig:
     def dim(self) -> int:
         """Task-space dimension: 2 for the block (x, z), 3 for the arm tasks."""
         return 2 if self.task == "block" else 3
+
+    def friction_ranges(self) -> FrictionRanges:
+        """The per-episode joint friction ranges (``nf_core.friction``; off when both are [0, 0])."""
+        return FrictionRanges(tuple(self.friction_coulomb), tuple(self.friction_viscous))
 
     def stiffness_matrix(self) -> np.ndarray:
         """S: ``stiffness`` on every axis, ``stiffness_axial`` (if set) on the last (insertion) axis."""

@@ -40,14 +40,14 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from nf_core import qos
+from nf_core import panda_spec, qos
 from nf_core.policy_params import PolicyParameters
 from nf_core.ros_runtime import SpinLock, run_node
 from nf_core.topics import CONTROLLER_STATUS, POLICY_PARAMETERS, ROLLOUTS, RUN_EPISODE
 
 from .config import TrainConfig
 from .dispatch import Outcome, WorkQueue
-from .rollout import EpisodeRecord
+from .rollout import EpisodeRecord, friction_info
 from .ros_episodes import ChunkCollector, IncompleteEpisodeError, episode_from_chunks
 from .trainer import (
     CHECKPOINT,
@@ -57,6 +57,7 @@ from .trainer import (
     Trainer,
     _atomic_write,
     _json_float,
+    episode_friction,
     episode_summary,
     prior_origin,
 )
@@ -180,6 +181,7 @@ class LearnerNode(Node):
         self.settings = {k: self.get_parameter_or(k, rclpy.Parameter(k, value=v)).value
                          for k, v in NODE_PARAMETERS.items()}
         self.cfg = TrainConfig.from_sources(None, overrides)
+        self.friction = self.cfg.friction_ranges()  # what each episode's sim draws (simulation only)
         if self.cfg.policy != "nf":
             raise ValueError("over ROS the controller runs the flow policy only (policy: nf); "
                              "train the MLP baseline in process with `train --policy mlp`")
@@ -302,12 +304,15 @@ class LearnerNode(Node):
         # the chunks travel on their own topic: give the last ones a moment
         arm.chunks.wait_for(result.episode_id, result.n_chunks, 5.0)
         try:
-            return episode_from_chunks(
+            record = episode_from_chunks(
                 arm.chunks.pop(result.episode_id), success_depth=self.success_depth,
                 final_distance=result.final_distance, torque_norm=result.torque_norm,
                 final_success=result.success, start_seed=start_seed)
         except IncompleteEpisodeError as exc:
             raise EpisodeFailedError(f"rollout incomplete: {exc}") from None
+        # the joint friction the sim drew for this start seed (the same function: nf_core.friction)
+        record.info.update(friction_info(self.friction, start_seed, len(panda_spec.JOINT_NAMES)))
+        return record
 
 
 def policy_version(trainer: Trainer, dispatch: int | None = None) -> int:
@@ -525,6 +530,9 @@ class RosTraining:
         cfg, trainer = self.cfg, self.trainer
         LOG.info("NF-PPO over ROS on %s: iterations %d..%d, %d rollouts each, output %s", cfg.task,
                  trainer.iteration + 1, cfg.iterations, cfg.rollouts_per_iter, self.out_dir)
+        if self.node.friction.enabled:
+            LOG.info("%s (the sim nodes read the same ranges from the task file's /** section)",
+                     self.node.friction.describe())
         if trainer.iteration == 0 and self.node.settings["evaluate_prior"] \
                 and not (self.out_dir / PRIOR_EVALUATION_FILE).exists():
             LOG.info("the prior%s first: deterministic, on the held-out starts of the final evaluation",
@@ -585,7 +593,8 @@ class RosTraining:
             out["started_from"] = self.trainer.started_from
         out.update(episode_summary(recs))
         out["per_episode"] = [{"start_seed": r.start_seed, "return": r.episode_return, "success": r.final_success,
-                               "final_distance": r.final_distance, "max_depth": float(r.depth.max())} for r in recs]
+                               "final_distance": r.final_distance, "max_depth": float(r.depth.max()),
+                               **episode_friction(r)} for r in recs]
         _atomic_write(self.out_dir / file_name, json.dumps(out, indent=1, default=_json_float))
         LOG.info("%s (deterministic, %d held-out starts): success %.2f, final distance %.4f m", what,
                  len(recs), out["success_rate"], out["final_distance_mean"])

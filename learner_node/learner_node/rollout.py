@@ -34,6 +34,7 @@ from nf_controller_node.controller import FlowController
 from nf_controller_node.torque_law import excess_norm
 from nf_core import panda_spec
 from nf_core.episode import EpisodeRun, EpisodeSpec
+from nf_core.friction import FrictionRanges
 from nf_core.reward import RewardWeights
 from sim_bridge_node.env import InsertionEnv
 
@@ -73,6 +74,17 @@ class EpisodeRecord:
         return bool(self.success[-1])
 
 
+def friction_info(ranges: FrictionRanges, seed: int | None, n_joints: int) -> dict[str, list[float]]:
+    """The joint friction of the episode with reset seed ``seed`` (``RolloutRunner.start_seed``'s value)
+    as a record's ``info`` holds it (``friction_coulomb``, ``friction_viscous``: per joint): the draw
+    ``InsertionEnv.reset(seed)`` applies, in process and in the sim node (the learner over ROS fills its
+    records with it); {} when the ranges are off."""
+    if not ranges.enabled:
+        return {}
+    coulomb, viscous = ranges.draw(seed, n_joints)
+    return {"friction_coulomb": coulomb.tolist(), "friction_viscous": viscous.tolist()}
+
+
 class RolloutRunner:
     """One simulated world plus (arm tasks) the Pinocchio model and ``FlowController``, reused per episode."""
 
@@ -83,6 +95,8 @@ class RolloutRunner:
         self.weights = RewardWeights.from_config(cfg)
         plane = cfg.block_plane if cfg.task == "block" else "vertical"
         self.env = InsertionEnv(cfg.task, plane=plane)
+        self.friction = cfg.friction_ranges()
+        self.env.set_friction_ranges(self.friction)  # each reset(seed) draws the episode's joint friction
         self.goal = self.env.goal_position
         self.arm: ArmModel | None = None
         self.controller: FlowController | None = None
@@ -145,10 +159,15 @@ class RolloutRunner:
             x, xdot = self.plant_state()
             run.close_period(x, xdot, self.env.insertion_depth)
             success[k] = self.env.success
+        info = {}
+        if self.env.episode_friction is not None:  # what this reset applied
+            info = {"friction_coulomb": self.env.episode_friction[0].tolist(),
+                    "friction_viscous": self.env.episode_friction[1].tolist()}
         return EpisodeRecord(
             t=run.decision_times(), x=run.x, xdot=run.xdot, u_mean=run.u_mean, action=run.action(),
             log_prob=run.log_prob(), reward=run.reward, terms=run.terms, depth=run.depth, success=success,
             start_seed=seed, final_distance=run.final_distance, torque_norm=run.mean_torque, faults=faults,
+            info=info,
         )
 
     def plant_state(self) -> tuple[np.ndarray, np.ndarray]:

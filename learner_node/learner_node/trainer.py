@@ -51,6 +51,7 @@ EVALUATION_FILE = "evaluation.json"  # the deterministic controller on the held-
 PRIOR_EVALUATION_FILE = "evaluation_prior.json"  # the same before iteration 1
 CHECKPOINT_FORMAT = 1
 EVAL_SEED_BASE = 1_000_000_000  # held-out evaluation starts: seeds >= this; training seeds are below
+# (with friction_coulomb / friction_viscous set, they draw their joint friction from the same ranges)
 # settings that may differ between a checkpoint and the run that resumes it (init_checkpoint is
 # read only by a run's start: a resumed run continues from its own checkpoint whatever it says)
 RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes", "init_checkpoint"})
@@ -141,7 +142,26 @@ def episode_summary(episodes: list[EpisodeRecord]) -> dict[str, float]:
     }
     for name in REWARD_TERMS:
         out[f"term_{name}"] = float(np.mean([e.terms[name].sum() for e in episodes]))
+    out.update(friction_summary(episodes))
     return out
+
+
+def friction_summary(episodes: list[EpisodeRecord]) -> dict[str, float]:
+    """Joint friction randomized per episode (``TrainConfig.friction_coulomb``/``friction_viscous``):
+    the mean over episodes and joints of the drawn Coulomb (Nm) and added viscous (Nm s/rad) friction
+    (``friction_coulomb_mean``, ``friction_viscous_mean``); nothing when off (the columns stay as they were)."""
+    drawn = [e.info for e in episodes if "friction_coulomb" in e.info]
+    if not drawn:
+        return {}
+    return {"friction_coulomb_mean": float(np.mean([np.mean(i["friction_coulomb"]) for i in drawn])),
+            "friction_viscous_mean": float(np.mean([np.mean(i["friction_viscous"]) for i in drawn]))}
+
+
+def episode_friction(record: EpisodeRecord) -> dict[str, float]:
+    """One episode's drawn joint friction for an evaluation's ``per_episode`` row (means over the
+    joints); {} when friction is not randomized."""
+    return {f"{k}_mean": float(np.mean(record.info[k])) for k in ("friction_coulomb", "friction_viscous")
+            if k in record.info}
 
 
 class Trainer:
@@ -335,7 +355,8 @@ class Trainer:
         out.update(episode_summary(recs))
         out["per_episode"] = [
             {"start_seed": r.start_seed, "return": r.episode_return, "success": r.final_success,
-             "final_distance": r.final_distance, "max_depth": float(r.depth.max()), "torque_norm": r.torque_norm}
+             "final_distance": r.final_distance, "max_depth": float(r.depth.max()), "torque_norm": r.torque_norm,
+             **episode_friction(r)}
             for r in recs
         ]
         return out

@@ -32,6 +32,8 @@ from pathlib import Path
 
 import yaml
 
+from nf_core.friction import OFF, FrictionRanges
+
 from .processes import ManagedProcess, allocate_domain_id, ros_env
 from .run_summary import plot_curves, write_summary
 from .stack import POLICY_READY, RECORDER_READY, from_checkpoint_args, wait_for_recorder
@@ -94,6 +96,26 @@ def robot_commands(args: argparse.Namespace, run_dir: Path, record: bool) -> dic
     return cmds
 
 
+def simulated_friction(config: Path) -> str:
+    """Why ``config`` cannot be the robot run's task file ("" if it can): joint friction ranges
+    (``friction_coulomb``/``friction_viscous``) act in the MuJoCo sim only; on an arm the learner would
+    record draws the arm never had."""
+    shared = yaml.safe_load(config.read_text())
+    for key in ("/**", "ros__parameters"):
+        shared = shared.get(key) if isinstance(shared, dict) else None
+    shared = shared if isinstance(shared, dict) else {}
+    try:
+        ranges = FrictionRanges(shared.get("friction_coulomb", OFF), shared.get("friction_viscous", OFF))
+    except ValueError as exc:
+        return f"{config}: {exc}"
+    if ranges.enabled:
+        return (f"{config} randomizes the simulated joint friction (friction_coulomb {list(ranges.coulomb)}, "
+                f"friction_viscous {list(ranges.viscous)}): that is for training in simulation; the arm has its "
+                f"own friction. Give the robot run a task file without them (config/gear_learn.yaml) and the "
+                f"policy learned with them as --from-checkpoint")
+    return ""
+
+
 def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="run_robot", description=__doc__.split("\n\n")[0])
     parser.add_argument("--robot", default=FRANKY,
@@ -118,6 +140,9 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
         if not path.exists():
             parser.error(f"no such parameters file: {path}")
         yaml.safe_load(path.read_text())  # a broken file fails here, before anything moves
+    problem = simulated_friction(args.config)
+    if problem:
+        parser.error(problem)
     if args.iterations < 1:
         parser.error("--iterations must be >= 1")
     if args.out is None:

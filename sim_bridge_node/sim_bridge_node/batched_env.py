@@ -1,6 +1,7 @@
 """Many environments stepped together, on a few threads (closed loop: one step per call).
 
-Each environment keeps its own ``MjData`` (all share one compiled ``MjModel``), so a batch member
+Each environment keeps its own ``MjData`` (all share one compiled ``MjModel``, unless joint friction
+is randomized per episode: then each has its own copy), so a batch member
 behaves bit for bit like a lone ``InsertionEnv`` with the same seed and torques. ``step`` checks
 the whole (n_envs, nu) torque array once, clamps it in one vectorised call, then steps the envs
 in contiguous chunks: one chunk per worker thread, the first on the calling thread. MuJoCo
@@ -14,11 +15,14 @@ environment's derived quantities such as contacts.)
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import numpy as np
 
+from nf_core.friction import FrictionRanges
 from sim_bridge_node.env import InsertionEnv
 from sim_bridge_node.scenes import build_scene
 
@@ -37,12 +41,19 @@ class BatchedEnv:
     """``n_envs`` copies of one task's environment, stepped together on ``n_threads`` threads."""
 
     def __init__(self, task: str = "gear", n_envs: int = 8, n_threads: int = 2, *, plane: str = "vertical",
-                 start_std: float | np.ndarray | None = None):
-        """Compile the scene once and create ``n_envs`` environments sharing the model."""
+                 start_std: float | np.ndarray | None = None, friction: FrictionRanges | None = None):
+        """Compile the scene once and create ``n_envs`` environments sharing the model; with
+        ``friction`` ranges on (joint friction drawn per episode from its seed, as a lone
+        ``InsertionEnv`` with ``set_friction_ranges`` does) each gets its own copy of the model."""
         if n_envs < 1 or n_threads < 1:
             raise ValueError(f"n_envs and n_threads must be >= 1, got {n_envs}, {n_threads}")
         scene = build_scene(task, plane=plane)
-        self.envs = [InsertionEnv(scene=scene, start_std=start_std) for _ in range(n_envs)]
+        own = friction is not None and friction.enabled  # per-episode friction lives in the model
+        self.envs = [InsertionEnv(scene=dataclasses.replace(scene, model=copy.copy(scene.model)) if own else scene,
+                                  start_std=start_std) for _ in range(n_envs)]
+        if own:
+            for env in self.envs:
+                env.set_friction_ranges(friction)
         self.task = scene.task
         self.n_threads = min(n_threads, n_envs)
         self._chunks = [list(c) for c in np.array_split(np.arange(n_envs), self.n_threads)]

@@ -17,6 +17,7 @@ import mujoco
 import numpy as np
 from numba import njit
 
+from nf_core.friction import FrictionRanges
 from sim_bridge_node.scenes import BLOCK_START_STD, CONTACT_FORCE_SENSOR, Scene, build_scene
 
 ARM_START_STD = 0.2  # rad, per joint (the paper's simulated peg-in-hole start distribution)
@@ -81,7 +82,9 @@ class InsertionEnv:
 
     ``reset(seed)``: ``seed`` None or negative gives the fixed start ``q_mean``; otherwise a
     start is drawn from ``N(q_mean, start_std^2)`` with a ``numpy`` Generator seeded by ``seed``,
-    redrawn until it is inside the joint limits, collision-free and above the fixture.
+    redrawn until it is inside the joint limits, collision-free and above the fixture. With
+    ``set_friction_ranges`` on, every reset also sets the episode's joint friction, drawn from the
+    seed (``nf_core.friction``; ``episode_friction``), before the start state is set.
     ``step(tau)``: one 1 ms physics step with the joint torques (forces for the block) ``tau``,
     clamped to the actuator limits. Malformed torques raise ``ValueError`` before anything changes.
     """
@@ -122,6 +125,8 @@ class InsertionEnv:
         self.start_std = np.broadcast_to(np.asarray(std, dtype=float), (self.nq,)).copy()
         self._vel6 = np.zeros(6)
         self._base_damping = m.dof_damping[self._vadr].copy()  # the scene's own (panda_spec.JOINT_DAMPING)
+        self.friction_ranges = FrictionRanges()  # off: a reset leaves the model alone
+        self.episode_friction: tuple[np.ndarray, np.ndarray] | None = None  # (Coulomb, added viscous) drawn
         self._ctrl = self.data.ctrl  # view into MjData, reused every step
         self.last_torque = np.zeros(m.nu)
         self.reset()
@@ -171,6 +176,16 @@ class InsertionEnv:
         self.model.dof_frictionloss[self._vadr] = fc
         self.model.dof_damping[self._vadr] = self._base_damping + fv
 
+    def set_friction_ranges(self, ranges: FrictionRanges) -> None:
+        """Joint friction randomized per episode: from the next reset on, each ``reset(seed)`` sets
+        ``set_joint_friction(*ranges.draw(seed, nq))`` (replacing any fixed friction set before) and
+        keeps the draw in ``episode_friction``. ``FrictionRanges()`` (both [0, 0]) turns it off: resets
+        leave the model as it is then. The model is shared by a batch sharing one scene (``BatchedEnv``
+        gives each environment its own copy when the ranges are on)."""
+        self.friction_ranges = ranges
+        if not ranges.enabled:
+            self.episode_friction = None
+
     @property
     def joint_friction(self) -> tuple[np.ndarray, np.ndarray]:
         """(Coulomb ``dof_frictionloss``, total viscous ``dof_damping``) of the controlled joints now."""
@@ -178,7 +193,9 @@ class InsertionEnv:
 
     # ------------------------------------------------------------------ reset and step
     def reset(self, seed: int | None = None, q: np.ndarray | None = None) -> Observation:
-        """Start a new episode at ``q`` (if given), the fixed start, or a start drawn with ``seed``."""
+        """Start a new episode at ``q`` (if given), the fixed start, or a start drawn with ``seed``.
+        With friction ranges on, the episode's friction is drawn from ``seed`` (None or < 0: the
+        ranges' middles) and set before the start state; a refused start changes neither."""
         if q is not None:
             q0 = self._checked_vector(q, self.nq, "start configuration")
             problem = self._start_problem(q0, require_above=False)
@@ -188,6 +205,10 @@ class InsertionEnv:
             q0 = self.scene.q_mean.copy()
         else:
             q0 = self.sample_start(seed)
+        if self.friction_ranges.enabled:  # friction leaves the start alone: it acts on motion only
+            coulomb, viscous = self.friction_ranges.draw(seed, self.nq)
+            self.set_joint_friction(coulomb, viscous)
+            self.episode_friction = (coulomb, viscous)
         self._set_state(q0)
         return self.observation()
 

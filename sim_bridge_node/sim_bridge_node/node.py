@@ -27,6 +27,11 @@ out as ``monitor_skipped``): a headless learning run does not pay for them.
 In realtime mode the driver thread, and only it, runs at the SCHED_FIFO priority ``rt_priority``
 gives (``nf_core.thread_priority``; auto: 99 when the system allows it), as the Franka
 driver's torque loop does: both are an ``nf_core.driver_loop.DriverLoop``.
+
+Joint friction: fixed for the node's life (``joint_friction``, ``joint_viscous``), or drawn per
+episode from each reset's seed (the task file's shared ``friction_coulomb``, ``friction_viscous``
+ranges; ``nf_core.friction``), the same draw the in-process trainer's resets make. Setting both
+kinds is refused. Each reset's draw goes to the log and ``/diagnostics`` (``episode_friction_*``).
 """
 
 from __future__ import annotations
@@ -49,6 +54,7 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from nf_core import qos, topics
 from nf_core.driver_loop import LoopHost, loop_priority
+from nf_core.friction import FrictionRanges
 from nf_core.ros_runtime import declare_read_only, run_node
 from nf_core.serialized_message import SerializedMessage
 from nf_core.thread_priority import AUTO, top_priority
@@ -72,6 +78,10 @@ PARAMETERS = {
                             "of one per joint; 0: none (the default)"),
     "joint_viscous": (0.0, "viscous joint friction added to the arm's own damping (panda_spec.JOINT_DAMPING), "
                            "Nm s/rad: one value or one per joint; 0: none added (the default)"),
+    "friction_coulomb": ([0.0, 0.0], "shared (/**): Coulomb joint friction [lo, hi], Nm, drawn per joint and episode "
+                                     "from the reset seed (nf_core.friction); [0, 0]: off. Excludes joint_friction"),
+    "friction_viscous": ([0.0, 0.0], "shared (/**): viscous joint friction [lo, hi] added to the arm's damping, "
+                                     "Nm s/rad, drawn like friction_coulomb; [0, 0]: off. Excludes joint_viscous"),
     "seed": (-1, "start of the first episode: < 0 fixed start, else a sampled start"),
     "lockstep_resend": (0.1, "lockstep: s of wall time before an unanswered state is published again"),
     "task_status_rate": (50.0, "task_status messages per s of simulated time (0: off)"),
@@ -93,7 +103,8 @@ PARAMETERS = {
     "response_log": ("", "realtime: every latency to this .npy (+ .json summary) at shutdown; folder checked at start"),
 }
 
-DYNAMIC_PARAMETERS = ("joint_friction", "joint_viscous")  # a number or a list: checked by the env
+# a number or a list (YAML [0, 0] is an integer array): checked by the env and nf_core.friction
+DYNAMIC_PARAMETERS = ("joint_friction", "joint_viscous", "friction_coulomb", "friction_viscous")
 _LATE_TICK = 2.0  # realtime: a tick later than this many periods counts as late
 LISTENERS_PERIOD = 0.2  # s, composed: how often the driver thread looks up who subscribes to its monitoring
 _ALL_LISTENED = (True, True, True, True)  # joint_states, applied commands, clock, task_status
@@ -141,7 +152,15 @@ class SimBridgeNode(Node):
         env = InsertionEnv(p["task"], plane=p["block_plane"])
         env.set_joint_friction(p["joint_friction"], p["joint_viscous"])  # ValueError naming the parameter
         coulomb, damping = env.joint_friction
-        if np.any(coulomb) or np.any(p["joint_viscous"]):
+        friction = FrictionRanges(p["friction_coulomb"], p["friction_viscous"])  # ValueError naming the range
+        if friction.enabled:
+            if np.any(coulomb) or np.any(p["joint_viscous"]):
+                raise ValueError("joint_friction / joint_viscous (fixed friction) and friction_coulomb / "
+                                 "friction_viscous (drawn per episode) are both set: give one of them (the "
+                                 "ranges [x, x] fix a value too)")
+            env.set_friction_ranges(friction)
+            self.get_logger().info(friction.describe())
+        elif np.any(coulomb) or np.any(p["joint_viscous"]):
             self.get_logger().info(f"joint friction: Coulomb {np.round(coulomb, 4).tolist()} Nm, viscous (with "
                                    f"the arm's own damping) {np.round(damping, 4).tolist()} Nm s/rad")
         self.bridge = SimBridge(env, config)
@@ -378,6 +397,9 @@ class SimBridgeNode(Node):
             "bad_commands": b.bad_commands, "stale_commands": b.stale_commands, "last_error": b.last_error,
             "lockstep_resends": self.resends, "late_ticks": self.late_ticks,
         }
+        if b.env.episode_friction is not None:  # this episode's draw (friction_coulomb / friction_viscous)
+            values["episode_friction_coulomb"] = np.round(b.env.episode_friction[0], 4).tolist()
+            values["episode_friction_viscous"] = np.round(b.env.episode_friction[1], 4).tolist()
         if self.timing is not None:
             lat = latency_summary(self.timing.take_window())
             values.update({f"response_{k}": f"{v:.1f}" for k, v in lat.items()})
@@ -444,6 +466,11 @@ class SimBridgeNode(Node):
             self.get_logger().error(f"reset refused: {exc}")
             return response
         response.success = True
+        drawn = self.bridge.env.episode_friction
+        if drawn is not None:  # the episode's joint friction (also in /diagnostics)
+            self.get_logger().info(f"reset, seed {request.seed}: joint friction Coulomb "
+                                   f"{np.round(drawn[0], 4).tolist()} Nm, viscous added "
+                                   f"{np.round(drawn[1], 4).tolist()} Nm s/rad")
         response.q, response.x = obs.q.tolist(), obs.x.tolist()
         response.stamp_ns = self.bridge.stamp_ns
         self._publish_task_status()
