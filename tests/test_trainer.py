@@ -292,3 +292,24 @@ def test_short_block_training_improves_return():
     returns = [r["return_mean"] for r in trainer.history]
     assert after > before + 0.05 * abs(before), (before, after)
     assert np.mean(returns[-3:]) > np.mean(returns[:3]) + 0.05 * abs(np.mean(returns[:3])), returns
+
+
+def test_deploy_moves_the_flow_with_the_goal_as_the_learner_does(tmp_path):
+    """deploy_policy --x-ref and init_checkpoint give the same policy for a goal: the flow's landscape
+    (nets that see (x - x_ref) / flow_input_scale) moves with x_ref."""
+    from learner_node.deploy import load_checkpoint_policy, prepare
+
+    Trainer(TrainConfig.from_sources(GEAR_LEARN, GEAR_TINY), tmp_path / "sim").run(evaluate=False)
+    ckpt = tmp_path / "sim" / CHECKPOINT
+    goal = [0.5, 0.0, 0.05]
+    params, iteration, scale = load_checkpoint_policy(ckpt)
+    assert iteration == 1 and scale > 0
+    deployed = prepare(params, goal, None, scale)
+    learner = Trainer(TrainConfig.from_sources(GEAR_LEARN, {**GEAR_TINY, "goal": goal, "init_checkpoint": str(ckpt)}),
+                      tmp_path / "robot")
+    learner.resume_or_init()
+    np.testing.assert_allclose(deployed.weights, learner.policy.to_params().weights, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(deployed.x_ref, goal)
+    kept = prepare(load_checkpoint_policy(ckpt)[0], None, None, scale)  # --keep-x-ref: as learned
+    np.testing.assert_allclose(kept.x_ref, [0.5, 0.0, 0.07])
+    assert not np.allclose(kept.weights, deployed.weights)

@@ -25,8 +25,8 @@ import numpy as np
 from nf_core.policy_params import PolicyParameters
 
 
-def load_checkpoint_policy(path: str | Path) -> tuple[PolicyParameters, int]:
-    """(the checkpoint's policy as PolicyParameters, its iteration)."""
+def load_checkpoint_policy(path: str | Path) -> tuple[PolicyParameters, int, float]:
+    """(the checkpoint's policy as PolicyParameters, its iteration, its run's ``flow_input_scale``)."""
     import torch  # here, not at the top: --help answers without loading torch
 
     from .config import TrainConfig
@@ -39,13 +39,20 @@ def load_checkpoint_policy(path: str | Path) -> tuple[PolicyParameters, int]:
     policy = build_policy(cfg, np.zeros(cfg.dim))
     policy.load_state_dict(state["policy"])
     iteration = int(state["iteration"])
-    return policy.to_params(version=iteration), iteration
+    return policy.to_params(version=iteration), iteration, cfg.flow_input_scale
 
 
-def prepare(params: PolicyParameters, x_ref: list[float] | None, version: int | None) -> PolicyParameters:
-    """``params`` with the user's goal and version, checked like the controller checks them."""
+def prepare(params: PolicyParameters, x_ref: list[float] | None, version: int | None,
+            flow_input_scale: float = 0.0) -> PolicyParameters:
+    """``params`` with the user's goal and version, checked like the controller checks them. With the
+    run's ``flow_input_scale`` > 0 the flow's landscape moves with the goal (as the learner's
+    ``init_checkpoint`` moves it)."""
     if x_ref is not None:
-        params.x_ref = np.asarray(x_ref, dtype=float)
+        from .flow import move_flow_to_goal
+
+        goal = np.asarray(x_ref, dtype=float)
+        params.weights = move_flow_to_goal(params.arch, params.weights, params.x_ref, goal, flow_input_scale)
+        params.x_ref = goal
     if version is not None:
         params.version = int(version)
     params.validate()
@@ -77,8 +84,8 @@ def main(argv: list[str] | None = None) -> int:
 
     argv = list(sys.argv if argv is None else argv)
     args = _parser().parse_args(remove_ros_args(argv)[1:])
-    params, iteration = load_checkpoint_policy(args.checkpoint)
-    params = prepare(params, None if args.keep_x_ref else args.x_ref, args.version)
+    params, iteration, scale = load_checkpoint_policy(args.checkpoint)
+    params = prepare(params, None if args.keep_x_ref else args.x_ref, args.version, scale)
     rclpy.init(args=argv)
     node = rclpy.create_node("deploy_policy")
     pub = node.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, qos.POLICY)

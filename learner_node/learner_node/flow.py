@@ -93,6 +93,18 @@ def output_layer_mask(arch: FlowArchitecture) -> np.ndarray:
     return np.concatenate(parts)
 
 
+def move_flow_to_goal(arch: FlowArchitecture, weights: np.ndarray, x_ref_from: np.ndarray,
+                      x_ref_to: np.ndarray, scale: float) -> np.ndarray:
+    """Physical flow weights learned around ``x_ref_from`` with ``flow_input_scale`` = ``scale``, moved
+    to ``x_ref_to``: the normalised weights (what the nets see, ``(x - x_ref) / scale``) are kept, so the
+    landscape sits around the new goal as it did around the old. ``scale`` 0: unchanged (the nets see
+    x in metres, nothing is relative to the goal)."""
+    if scale <= 0.0:
+        return np.asarray(weights, dtype=np.float64).copy()
+    normalised = rescale_flow_weights(arch, weights, x_ref_from, scale, inverse=True)
+    return rescale_flow_weights(arch, normalised, x_ref_to, scale)
+
+
 def rescale_flow_weights(
     arch: FlowArchitecture, weights: np.ndarray, x_ref: np.ndarray, scale: float, inverse: bool = False
 ) -> np.ndarray:

@@ -28,7 +28,7 @@ from nf_core.policy_params import PolicyParameters
 from nf_core.reward import REWARD_TERMS
 
 from .config import TrainConfig
-from .flow import init_flow_weights, rescale_flow_weights
+from .flow import init_flow_weights, move_flow_to_goal, rescale_flow_weights
 from .mlp_policy import MLPEvaluator, MLPPolicy
 from .param_explore import ParamExploration, follow_sigma, make_param_optimizer, paired_advantages, param_ppo_update
 from .policy import NFPolicy
@@ -481,11 +481,13 @@ class Trainer:
         normalised weights are kept and the physical ones follow the goal (the bias of each net's first
         layer moves). Otherwise the weights are kept as learned, in metres of the base frame."""
         flat = source.flow.to_flat()
-        theirs, mine = their_scale, self.cfg.flow_input_scale
-        if theirs > 0.0 and mine > 0.0:
-            arch = self.policy.flow.arch
-            normalised = rescale_flow_weights(arch, flat, source.x_ref.detach().numpy(), theirs, inverse=True)
-            flat = rescale_flow_weights(arch, normalised, np.asarray(self.x_ref, dtype=float), mine)
+        if their_scale > 0.0 and self.cfg.flow_input_scale > 0.0:
+            if their_scale != self.cfg.flow_input_scale:  # normalised in theirs, then physical in mine
+                flat = rescale_flow_weights(self.policy.flow.arch, rescale_flow_weights(
+                    self.policy.flow.arch, flat, source.x_ref.detach().numpy(), their_scale, inverse=True),
+                    source.x_ref.detach().numpy(), self.cfg.flow_input_scale)
+            flat = move_flow_to_goal(self.policy.flow.arch, flat, source.x_ref.detach().numpy(),
+                                     np.asarray(self.x_ref, dtype=float), self.cfg.flow_input_scale)
         return flat
 
     def _continue_spread(self, stored: dict[str, Any]) -> list[str]:
