@@ -313,3 +313,18 @@ def test_deploy_moves_the_flow_with_the_goal_as_the_learner_does(tmp_path):
     kept = prepare(load_checkpoint_policy(ckpt)[0], None, None, scale)  # --keep-x-ref: as learned
     np.testing.assert_allclose(kept.x_ref, [0.5, 0.0, 0.07])
     assert not np.allclose(kept.weights, deployed.weights)
+
+
+def test_init_sigma_scale_narrows_the_loaded_spread(tmp_path):
+    Trainer(TrainConfig.from_sources(GEAR_LEARN, GEAR_TINY), tmp_path / "sim").run(evaluate=False)
+    ckpt = str(tmp_path / "sim" / CHECKPOINT)
+    full, half = (Trainer(TrainConfig.from_sources(GEAR_LEARN, {**GEAR_TINY, "init_checkpoint": ckpt,
+                                                                "init_sigma_scale": k}), tmp_path / f"r{k}")
+                  for k in (1.0, 0.5))
+    full.resume_or_init()
+    assert "x 0.5" in half.resume_or_init()
+    for name in ("log_sigma_gains", "log_sigma_flow"):
+        np.testing.assert_allclose(torch.exp(getattr(half.explorer, name)).detach().numpy(),
+                                   0.5 * torch.exp(getattr(full.explorer, name)).detach().numpy(), rtol=1e-12)
+    with pytest.raises(ValueError, match="init_sigma_scale must be in"):
+        TrainConfig.from_sources(GEAR_LEARN, {"init_sigma_scale": 0.0})

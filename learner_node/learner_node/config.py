@@ -194,6 +194,10 @@ class TrainConfig:
     goal (``goal``, else the task's), never the checkpoint's. Its architecture (policy; n_flow, n_hidden,
     activation or mlp_hidden, mlp_activation; the task's dimension) must be this config's. Read only if
     the run folder has no checkpoint of its own (that one is resumed)."""
+    init_sigma_scale: float = 1.0
+    """With ``init_checkpoint``: factor on the loaded exploration stds (parameter stds, or the action
+    noise), in (0, 1]. Below 1 the rollouts on the new system stay closer to the loaded controller and,
+    the mean's step being measured in stds (``param_step``), each update moves it less."""
 
     def __post_init__(self) -> None:
         self._coerce_types()
@@ -266,6 +270,8 @@ class TrainConfig:
             raise ValueError("friction_coulomb / friction_viscous are drawn from each episode's start seed; with "
                              "start: fixed there is none (every episode would get the ranges' middles): use "
                              "start: random, or give each range one value ([x, x])")
+        if not (0.0 < self.init_sigma_scale <= 1.0):
+            raise ValueError(f"init_sigma_scale must be in (0, 1], got {self.init_sigma_scale}")
         if self.init_checkpoint != self.init_checkpoint.strip():
             raise ValueError(f"init_checkpoint must be a path without leading or trailing spaces, "
                              f"got {self.init_checkpoint!r}")

@@ -54,7 +54,7 @@ EVAL_SEED_BASE = 1_000_000_000  # held-out evaluation starts: seeds >= this; tra
 # (with friction_coulomb / friction_viscous set, they draw their joint friction from the same ranges)
 # settings that may differ between a checkpoint and the run that resumes it (init_checkpoint is
 # read only by a run's start: a resumed run continues from its own checkpoint whatever it says)
-RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes", "init_checkpoint"})
+RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes", "init_checkpoint", "init_sigma_scale"})
 # the settings that shape a policy's parameters, per policy type (with the task's dimension)
 ARCHITECTURE = {"nf": ("n_flow", "n_hidden", "activation"), "mlp": ("mlp_hidden", "mlp_activation")}
 # settings only the NF policy reads: an MLP run's checkpoint resumes whatever they are
@@ -438,6 +438,8 @@ class Trainer:
             raise ValueError(f"init_checkpoint {path}: its policy does not match its own settings ({exc})") from None
         self._load_policy(source, path, theirs.flow_input_scale)
         if self.explorer is None:
+            with torch.no_grad():
+                self.policy.log_std.add_(math.log(self.cfg.init_sigma_scale))
             spread = [f"action noise std {float(torch.exp(self.policy.log_std.detach()).mean()):.3g} N"]
         else:
             spread = self._continue_spread(state.get("explorer") or {})
@@ -504,8 +506,9 @@ class Trainer:
                 theirs = stored.get(name)
                 kept = theirs is not None and tuple(theirs.shape) == tuple(mine.shape)
                 if kept:
-                    mine.copy_(theirs)
-                whose = "the checkpoint's" if kept else "this config's: the checkpoint has none"
+                    mine.copy_(theirs + math.log(self.cfg.init_sigma_scale))
+                whose = ("the checkpoint's" + (f" x {self.cfg.init_sigma_scale:g}" if self.cfg.init_sigma_scale != 1.0
+                                               else "")) if kept else "this config's: the checkpoint has none"
                 out.append(f"{label} std {float(torch.exp(mine).mean()):.3g} ({whose})")
         cfg = self.cfg  # the optimiser's steps follow the stds (make_param_optimizer)
         self.optimizer = make_param_optimizer(self.explorer, cfg.param_lr, cfg.param_sigma_lr, cfg.param_lr_flow)
