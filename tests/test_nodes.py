@@ -179,11 +179,14 @@ def test_controller_holds_on_bad_joint_states(probe_and_domain, tmp_path: Path):
                               tmp_path / "injector.log")
         with injector:
             assert probe.spin_until(lambda: not injector.alive(), 20.0)
-            probe.spin_for(1.2)
         assert injector.proc.returncode == 0, injector.log()
+        sent = int(re.findall(r"after (\d+) states", injector.log())[-1])
+        # the injector exits once its states are acknowledged (in the controller's reader): give the
+        # controller's executor time to answer the last of them and report it (diagnostics: 1 s)
+        reported = lambda: [int(v["steps"]) for _, m in diags if (v := diag_values(m, "nf_controller"))]  # noqa: E731
+        probe.spin_until(lambda: (reported() or [0])[-1] >= sent, 5.0)
     log = ctl.log()
     assert ctl.proc.returncode == 0, log
-    sent = int(re.findall(r"after (\d+) states", injector.log())[-1])
     assert len(commands) > 100, f"{len(commands)} commands\n{log}"
     problems = _command_problems(commands)
     assert not problems, f"{len(problems)} bad commands, first {problems[0]}"
