@@ -44,6 +44,23 @@ def _set(msg: Any, path: str, value: Any) -> None:
         setattr(owner, last, value)
 
 
+def _locate_bool(probe: Any, name: str, tries: int = 4) -> int:
+    """Offset of bool field ``name`` (False in ``probe``) in its serialized message: the one byte that is
+    0 with False and 1 with True in every one of ``tries`` serializations each way. CDR's alignment
+    padding is not initialised by the serializer (it has differed between two serializations of the
+    same message), so a plain diff of one pair can show more than the bool."""
+    zeros, ones = [], []
+    for _ in range(tries):
+        zeros.append(np.frombuffer(serialize_message(probe), np.uint8))
+        _set(probe, name, True)
+        ones.append(np.frombuffer(serialize_message(probe), np.uint8))
+        _set(probe, name, False)
+    found = np.flatnonzero(np.all(np.stack(zeros) == 0, axis=0) & np.all(np.stack(ones) == 1, axis=0))
+    if found.size != 1:
+        raise ValueError(f"cannot locate bool field {name} in the serialized message")
+    return int(found[0])
+
+
 def _find_once(data: bytes, pattern: bytes, what: str) -> int:
     at = data.find(pattern)
     if at < 0 or data.find(pattern, at + 1) >= 0:
@@ -95,12 +112,7 @@ class SerializedMessage:
             self._stamp = (np.frombuffer(self._buf, "<i4", 1, at), np.frombuffer(self._buf, "<u4", 1, at + 4))
         self._bools = {}
         for name in bools:
-            _set(probe, name, True)
-            changed = [i for i, (a, b) in enumerate(zip(data, serialize_message(probe), strict=True)) if a != b]
-            _set(probe, name, False)
-            if len(changed) != 1:
-                raise ValueError(f"cannot locate bool field {name} in the serialized message")
-            self._bools[name] = changed[0]
+            self._bools[name] = _locate_bool(probe, name)
         # the rest of the message as given, not the sentinels
         for name in floats:
             self.floats[name][:] = np.atleast_1d(np.asarray(_get(msg, name), dtype=np.float64))
