@@ -225,6 +225,11 @@ def test_realtime_sim_holds_arm_when_controller_is_killed(probe_and_domain, tmp_
             # cache (a known issue): the sim must have left any such hold before the kill.
             last = lambda: [v for _, v in diags if v][-1:]  # noqa: E731
             assert probe.spin_until(lambda: last() and last()[0]["safe_hold"] == "False", 10.0), logs()
+            # and kill a controller that has been commanding for a while, not one whose first commands
+            # (its rate limit seeded from the sim's effort, which includes the gravity the sim adds
+            # here: a start transient) are still moving the arm
+            probe.spin_for(1.0)
+            assert last()[0]["safe_hold"] == "False", logs()
             timeouts_before = int(last()[0]["command_timeouts"])
             assert probe.spin_until(lambda: bool(states), 5.0), logs()  # best effort: wait for one
             q_before = states[-1][1]
