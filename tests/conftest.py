@@ -50,3 +50,30 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
             return _scope(nodeid)
 
     return ModuleScheduling(config, log)
+
+
+@pytest.fixture
+def ros_args(monkeypatch):
+    """``rclpy.init`` of this process with these ``--ros-args`` (as node ``sim_bridge``'s command line)
+    in a domain of the test's own, shut down afterwards."""
+    import sys
+
+    import rclpy
+
+    from nf_core import ros_runtime
+
+    from ros_testing import allocate_domain_id
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(allocate_domain_id()))
+    inited = []
+
+    def init(*args: str) -> None:
+        argv = ["sim_bridge", "--ros-args", *args]
+        monkeypatch.setattr(sys, "argv", argv)
+        monkeypatch.setattr(ros_runtime, "_command_line", None)
+        rclpy.init(args=argv)
+        inited.append(True)
+
+    yield init
+    if inited and rclpy.ok():
+        rclpy.shutdown()

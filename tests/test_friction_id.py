@@ -18,14 +18,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from nf_bags import friction
 from nf_bags.writer import BagWriter
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import JointState
 
-from nf_core import panda_spec, ros_runtime
+from nf_core import panda_spec
 from nf_core.serialized_message import SerializedMessage
 from sim_bridge_node.bridge import BridgeConfig, SimBridge
 from sim_bridge_node.env import InsertionEnv, joint_values
@@ -217,24 +216,6 @@ def test_friction_parameters_are_checked_and_default_to_none():
             env.set_joint_friction(0.0, bad)
         assert words in str(info.value)
     assert np.all(env.joint_friction[0] == 0.5)  # a refused value changed nothing
-
-
-@pytest.fixture
-def ros_args(monkeypatch):
-    """``rclpy.init`` with these ``--ros-args`` in a domain of this test's own, undone afterwards."""
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(allocate_domain_id()))
-    inited = []
-
-    def init(*args: str) -> None:
-        argv = ["sim_bridge", "--ros-args", *args]
-        monkeypatch.setattr(sys, "argv", argv)
-        monkeypatch.setattr(ros_runtime, "_command_line", None)
-        rclpy.init(args=argv)
-        inited.append(True)
-
-    yield init
-    if inited and rclpy.ok():
-        rclpy.shutdown()
 
 
 @pytest.mark.parametrize("args, expect", [

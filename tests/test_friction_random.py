@@ -5,25 +5,21 @@ and the in-process trainer and the sim node apply the same friction for a seed (
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import mujoco
 import numpy as np
 import pytest
-import rclpy
 from nf_msgs.srv import ResetSim
 
 from learner_node.config import TrainConfig
 from learner_node.rollout import friction_info
 from learner_node.trainer import EVAL_SEED_BASE, Trainer
-from nf_core import panda_spec, ros_runtime
+from nf_core import panda_spec
 from nf_core.friction import FrictionRanges
 from sim_bridge_node.batched_env import BatchedEnv
 from sim_bridge_node.env import InsertionEnv
 from sim_bridge_node.scripted_insertion import push_torque
-
-from ros_testing import allocate_domain_id
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 FRICTION_YAML = CONFIG / "gear_learn_friction.yaml"
@@ -158,24 +154,6 @@ def test_batched_envs_with_friction_match_lone_envs():
         for _ in range(60):
             single.step(push_torque(single, single.goal_position + [0, 0, 0.03]))
         np.testing.assert_array_equal(batched[i], single.q)
-
-
-@pytest.fixture
-def ros_args(monkeypatch):
-    """``rclpy.init`` with these ``--ros-args`` in a domain of this test's own, undone afterwards."""
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(allocate_domain_id()))
-    inited = []
-
-    def init(*args: str) -> None:
-        argv = ["sim_bridge", "--ros-args", *args]
-        monkeypatch.setattr(sys, "argv", argv)
-        monkeypatch.setattr(ros_runtime, "_command_line", None)
-        rclpy.init(args=argv)
-        inited.append(True)
-
-    yield init
-    if inited and rclpy.ok():
-        rclpy.shutdown()
 
 
 def test_the_sim_node_applies_the_trainers_friction_for_a_seed(ros_args):
