@@ -7,10 +7,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import mujoco
 import numpy as np
 import pytest
 from nf_msgs.srv import ResetSim
+from sim_testing import push_rollout
 
 from learner_node.config import TrainConfig
 from learner_node.rollout import friction_info
@@ -26,23 +26,6 @@ FRICTION_YAML = CONFIG / "gear_learn_friction.yaml"
 RANGES = FrictionRanges((0.2, 1.2), (0.0, 0.2))
 SEEDS = (0, 7, 123_456, EVAL_SEED_BASE + 3)
 TINY = {"iterations": 1, "rollouts_per_iter": 2, "episode_seconds": 0.05, "eval_episodes": 1}
-
-
-def _state(env: InsertionEnv) -> np.ndarray:
-    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    state = np.zeros(mujoco.mj_stateSize(env.model, spec))
-    mujoco.mj_getState(env.model, env.data, state, spec)
-    return state
-
-
-def _rollout(env: InsertionEnv, seed: int | None, steps: int = 200) -> np.ndarray:
-    env.reset(seed)
-    target = env.goal_position + [0.0, 0.0, 0.05]
-    out = []
-    for _ in range(steps):
-        env.step(push_torque(env, target))
-        out.append(_state(env))
-    return np.array(out)
 
 
 def test_the_draw_is_a_pure_function_of_the_seed_and_leaves_the_start_alone():
@@ -72,8 +55,8 @@ def test_the_draw_is_a_pure_function_of_the_seed_and_leaves_the_start_alone():
         np.testing.assert_array_equal(randomized.episode_friction[0], np.full(7, 0.7))
         np.testing.assert_array_equal(randomized.episode_friction[1], np.full(7, 0.1))
     # the physics follows the draw: with friction the same push ends elsewhere
-    assert not np.array_equal(_rollout(randomized, 7, 50), _rollout(plain, 7, 50))
-    np.testing.assert_array_equal(_rollout(randomized, 7, 50), _rollout(again, 7, 50))
+    assert not np.array_equal(push_rollout(randomized, 7, 50), push_rollout(plain, 7, 50))
+    np.testing.assert_array_equal(push_rollout(randomized, 7, 50), push_rollout(again, 7, 50))
 
 
 def test_ranges_off_leave_the_model_and_the_trajectory_bit_identical():
@@ -83,7 +66,7 @@ def test_ranges_off_leave_the_model_and_the_trajectory_bit_identical():
     runner_env = Trainer(TrainConfig.from_sources(CONFIG / "gear_learn.yaml", TINY)).runner.env  # default [0, 0]
     for env in (off, runner_env):
         for seed in (11, None):
-            np.testing.assert_array_equal(_rollout(env, seed), _rollout(today, seed))
+            np.testing.assert_array_equal(push_rollout(env, seed, 200), push_rollout(today, seed, 200))
             assert env.episode_friction is None
         for name in ("dof_frictionloss", "dof_damping"):
             np.testing.assert_array_equal(getattr(env.model, name), getattr(today.model, name))

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import mujoco
 import numpy as np
 import pytest
+from sim_testing import full_state, push_rollout
 
 from nf_core import panda_spec
 from sim_bridge_node.batched_env import BatchedEnv
@@ -23,21 +23,6 @@ def block_env():
     return InsertionEnv("block")
 
 
-def _state(env: InsertionEnv) -> np.ndarray:
-    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    state = np.zeros(mujoco.mj_stateSize(env.model, spec))
-    mujoco.mj_getState(env.model, env.data, state, spec)
-    return state
-
-
-def _rollout(env: InsertionEnv, seed: int | None, steps: int = 300) -> np.ndarray:
-    env.reset(seed)
-    target = env.goal_position + [0.0, 0.0, 0.05]
-    trajectory = []
-    for _ in range(steps):
-        env.step(push_torque(env, target))
-        trajectory.append(_state(env))
-    return np.array(trajectory)
 
 
 @pytest.mark.parametrize("task", ["gear", "peg"])
@@ -63,11 +48,11 @@ def test_every_name_is_set():
 
 
 def test_same_seed_gives_bit_identical_trajectory(gear_env):
-    first = _rollout(gear_env, seed=11)
-    second = _rollout(gear_env, seed=11)
+    first = push_rollout(gear_env, seed=11, steps=300)
+    second = push_rollout(gear_env, seed=11, steps=300)
     np.testing.assert_array_equal(first, second)
-    fixed = _rollout(gear_env, seed=None, steps=50)
-    np.testing.assert_array_equal(fixed, _rollout(gear_env, seed=-3, steps=50))
+    fixed = push_rollout(gear_env, seed=None, steps=50)
+    np.testing.assert_array_equal(fixed, push_rollout(gear_env, seed=-3, steps=50))
 
 
 @pytest.mark.parametrize("task", TASKS)
@@ -132,10 +117,10 @@ def test_bad_torque_is_rejected_and_state_unchanged(gear_env, bad, message):
     gear_env.reset(seed=5)
     for _ in range(10):
         gear_env.step(gear_env.bias_torques)
-    before = _state(gear_env)
+    before = full_state(gear_env)
     with pytest.raises(ValueError, match=message):
         gear_env.step(bad)
-    np.testing.assert_array_equal(_state(gear_env), before)
+    np.testing.assert_array_equal(full_state(gear_env), before)
 
 
 def test_torques_are_clamped(gear_env):
