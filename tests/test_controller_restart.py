@@ -29,9 +29,12 @@ def test_restarted_controller_starts_from_the_applied_torque(tmp_path):
     probe = Probe(domain)
     joints = JointMap(panda_spec.JOINT_NAMES)
     arm = ArmModel()
+    # (q, dq, effort, the driver's stamp in s): the probe can lag the 1 kHz stream on two loaded cores,
+    # so what the driver applies at a moment is read from a state it stamped after that moment
     states = probe.collect(JointState, "joint_states", RELIABLE,
                            convert=lambda m: (*joints.map(m.name, m.position, m.velocity),
-                                              joints.map(m.name, m.effort, m.effort)[0]))
+                                              joints.map(m.name, m.effort, m.effort)[0],
+                                              m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec))
     commands = probe.collect(Float64MultiArray, "effort_controller/commands", RELIABLE,
                              convert=lambda m: np.array(m.data))
     driver = RosProcess([str(REPO / "tests" / "peers" / "hw_driver.py")], domain, tmp_path / "driver.log")
@@ -46,16 +49,19 @@ def test_restarted_controller_starts_from_the_applied_torque(tmp_path):
         assert probe.spin_until(lambda: commands and np.abs(commands[-1][1]).max() > 3.0, 60), first.log()
         first.proc.send_signal(signal.SIGKILL)
         first.proc.wait(10)
+        killed_wall = time.time()
         # the probe may still hold a backlog of the dead controller's commands (1 kHz, on two loaded
         # cores): only once none has come for 0.5 s is every later command the second controller's
         assert probe.spin_until(lambda: time.monotonic() - commands[-1][0] > 0.5, 30), "commands go on after the kill"
         killed = time.monotonic()
-        held = states[-1][1][2]  # what the driver applies now: the dead controller's last command
+        # what the driver applies now (the dead controller's last command), from a state stamped after the kill
+        assert probe.spin_until(lambda: states[-1][1][3] > killed_wall + 0.1, 30), "no joint state after the kill"
+        held = states[-1][1][2]
         assert np.abs(held).max() > 2.0, f"the driver applies only {held}: nothing to ramp from"
         second = RosProcess([*CONTROLLER, "-p", "idle_mode:=hold"], domain, tmp_path / "second.log")
         assert probe.spin_until(lambda: commands and commands[-1][0] > killed + 0.2, 60), second.log()
-        t_first, tau_first = next((t, c) for t, c in commands if t > killed + 0.2)
-        applied = [e for t, (_, _, e) in states if t < t_first][-1]  # the last effort reported before it
+        tau_first = next(c for t, c in commands if t > killed + 0.2)
+        applied = held  # the driver's command changes only when a command arrives: none came since the kill
         step = np.abs(tau_first - applied)
         assert step.max() <= MAX_STEP + 1e-6, (f"first command {np.round(tau_first, 3)} steps {np.round(step, 3)} Nm "
                                                f"from the applied {np.round(applied, 3)}\n{second.log()}")
