@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nf_bags import friction
 from nf_bags.writer import BagWriter
 from rclpy.serialization import serialize_message
@@ -42,13 +42,14 @@ EPISODE = 4.0  # s of simulated time, twice (a reset between)
 
 
 def record(bags: dict[Path, int], coulomb: object, viscous: object, amplitude: np.ndarray = AMPLITUDE,
-           without_diagnostics: Collection[Path] = ()) -> dict[str, int]:
+           without_diagnostics: Collection[Path] = (), driver_gravity: bool = False) -> dict[str, int]:
     """Run the sim with this friction and write its joint states into each bag of ``bags`` (path ->
     every how many physics steps a state is recorded: 1 as with ``monitor_period`` 0, 10 as ``make
-    run``'s 10 ms), and the sim node's diagnostics status unless the bag is in ``without_diagnostics``."""
+    run``'s 10 ms), and the sim node's diagnostics status unless the bag is in ``without_diagnostics``.
+    ``driver_gravity``: the sim adds gravity itself (``driver_gravity_compensation``), as Franka does."""
     env = InsertionEnv("free")
     env.set_joint_friction(coulomb, viscous)
-    bridge = SimBridge(env, BridgeConfig())
+    bridge = SimBridge(env, BridgeConfig(driver_gravity_compensation=driver_gravity))
     n = len(bridge.joint_names)
     writers = {}
     for path in bags:
@@ -56,7 +57,8 @@ def record(bags: dict[Path, int], coulomb: object, viscous: object, amplitude: n
         w.add_topic("/joint_states", "sensor_msgs/msg/JointState")
         if path not in without_diagnostics:
             w.add_topic("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
-            status = DiagnosticStatus(name="sim_bridge: driver", hardware_id="mujoco:free")
+            said = KeyValue(key="effort", value="no-gravity" if driver_gravity else "applied")
+            status = DiagnosticStatus(name="sim_bridge: driver", hardware_id="mujoco:free", values=[said])
             w.write("/diagnostics", serialize_message(DiagnosticArray(status=[status])), 1)
         writers[path] = w
     state = SerializedMessage(JointState(name=list(bridge.joint_names), position=[0.0] * n, velocity=[0.0] * n,
@@ -67,7 +69,7 @@ def record(bags: dict[Path, int], coulomb: object, viscous: object, amplitude: n
         state.set_stamp(bridge.stamp_ns)
         state.floats["position"][:] = env.q
         state.floats["velocity"][:] = env.dq
-        state.floats["effort"][:] = bridge.torque  # what the node publishes: the applied torque
+        state.floats["effort"][:] = bridge.effort  # what the node publishes
         for path, every in bags.items():
             if step % every == 0:
                 writers[path].write("/joint_states", bytes(state.payload()), bridge.stamp_ns + 1)
@@ -83,7 +85,8 @@ def record(bags: dict[Path, int], coulomb: object, viscous: object, amplitude: n
             t = env.time
             q_ref = Q0 + amplitude * np.sin(omega * t)
             dq_ref = amplitude * omega * np.cos(omega * t)
-            assert bridge.step_with(bridge.gravity() + KP * (q_ref - env.q) + KD * (dq_ref - env.dq))
+            gravity = 0.0 if driver_gravity else bridge.gravity()
+            assert bridge.step_with(gravity + KP * (q_ref - env.q) + KD * (dq_ref - env.dq))
             contacts += env.data.ncon
             saturated += bool(np.any(np.abs(bridge.torque) >= limits))
             publish(k)
@@ -151,6 +154,20 @@ def test_at_100_hz_without_diagnostics_the_data_picks_the_effort(friction_bags):
     assert np.all(np.abs(dv) <= 0.02), dv  # measured: at most 0.0058 Nm s/rad
     forced = friction.identify_bag(friction_bags["hundred_hz"], effort="no-gravity")  # as if a Franka's
     assert forced.fit.effort == "no-gravity" and any("check --effort" in w for w in forced.warnings)
+
+
+def test_a_sim_that_adds_gravity_itself_reports_the_commands_part(tmp_path):
+    """With driver_gravity_compensation the sim's effort leaves its own gravity out (as Franka's driver)
+    and its diagnostics say so: the tool takes that convention and still finds the friction."""
+    bag = tmp_path / "driver_gravity"
+    record({bag: 10}, COULOMB, VISCOUS, driver_gravity=True)
+    result = friction.identify_bag(bag)
+    assert result.fit.effort == "no-gravity" and "sim_bridge: driver" in result.fit.effort_source
+    assert not result.warnings, result.warnings
+    dc, dv = errors(result.as_dict(), COULOMB, VISCOUS)
+    print(f"\ndriver gravity: Coulomb error {np.round(dc, 4).tolist()} Nm, viscous error {np.round(dv, 4).tolist()}")
+    assert np.all(np.abs(dc) <= 0.02), dc
+    assert np.all(np.abs(dv) <= 0.02), dv
 
 
 def test_without_friction_the_sims_own_damping_only(tmp_path):

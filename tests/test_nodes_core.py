@@ -156,6 +156,24 @@ def test_bridge_driver_gravity_compensation(free_env):
     bridge = _bridge(free_env, mode="lockstep", driver_gravity_compensation=True)
     assert _drift_deg(bridge, 500, command=np.zeros(7)) < 0.01
     np.testing.assert_allclose(bridge.torque, bridge.gravity(), atol=1e-6)
+    np.testing.assert_allclose(bridge.effort, 0.0, atol=1e-6)  # effort: the command's part, as Franka's
+    command = np.array([1.0, -2.0, 0.5, 3.0, -0.5, 0.2, 0.0])
+    assert bridge.step_with(command)
+    np.testing.assert_allclose(bridge.effort, command, atol=1e-9)
+    assert bridge.torque[1] != pytest.approx(command[1], abs=0.1)  # the applied torque carries gravity
+
+
+def test_bridge_hold_effort_leaves_out_the_drivers_gravity(free_env):
+    """At rest the safe hold applies gravity: effort reports it, unless the driver adds gravity itself."""
+    for driver_gravity in (False, True):
+        bridge = _bridge(free_env, mode="realtime", command_timeout=0.05, driver_gravity_compensation=driver_gravity)
+        bridge.reset(seed=0)
+        assert bridge.step_realtime(0.0)  # no command yet: the safe hold, from rest
+        assert np.abs(bridge.torque).max() > 1.0
+        if driver_gravity:
+            np.testing.assert_allclose(bridge.effort, 0.0, atol=1e-9)
+        else:
+            np.testing.assert_array_equal(bridge.effort, bridge.torque)
 
 
 def test_bridge_reset_keeps_the_clock_running_and_refuses_bad_starts(free_env):

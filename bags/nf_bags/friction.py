@@ -21,16 +21,17 @@ Method, per recorded joint state (``/joint_states``, or an arm's ``/armN/joint_s
    part, the rotor armature). Which part of it the effort holds depends on the driver:
 
    - ``applied``: the torque the joint motors apply, gravity included. The MuJoCo sim's
-     ``joint_states`` (``sim_bridge``, also with ``driver_gravity_compensation``: its effort is
-     the applied torque, the command plus the gravity it added). Its joint friction is physics, not
-     part of the effort, so it shows as the residual.
+     ``joint_states`` (``sim_bridge``; with ``driver_gravity_compensation`` it reports the command's
+     part, ``no-gravity``, and says so in its diagnostics' ``effort`` value). Its joint friction is
+     physics, not part of the effort, so it shows as the residual.
    - ``no-gravity``: the command on top of the robot's own gravity compensation. The Franka
      driver's ``joint_states`` (``franka_driver``: the torque written to libfranka, which adds
      g(q) itself; libfranka's ``Torques`` are "desired torques without gravity and friction",
      so on a real arm the friction the robot compensates itself is not in the residual, only
      what its compensation leaves). The model torque is then M ddq + C dq.
 
-   ``auto`` reads the bag's ``/diagnostics`` (``sim_bridge: driver`` or ``franka_driver: robot``);
+   ``auto`` reads the bag's ``/diagnostics`` (a driver status's ``effort`` value, else its name:
+   ``sim_bridge: driver`` or ``franka_driver: robot``);
    without them the data decides (whichever leaves the smaller residual; gravity is tens of Nm on
    the shoulder and elbow, friction a few). Either way both residuals are reported, and a choice
    the data contradicts is warned about.
@@ -62,7 +63,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -88,7 +89,8 @@ MAX_CONDITION = 100.0  # of the normalized [sign(dq), dq, 1] regressors: above, 
 # the Franka driver's the command computed from the state stamped t. Getting either wrong biases the viscous
 # terms (an effort delay off by a step: by about gravity's slope times the step, on the shoulder).
 TORQUE_PERIOD = 0.001  # s
-EFFORT_DELAY = {"applied": 0.001, "no-gravity": 0.0}  # s
+EFFORT_DELAY = {"applied": 0.001, "no-gravity": 0.0}  # s, of each convention's usual driver
+DRIVER_DELAY = {"sim_bridge: driver": 0.001, "franka_driver: robot": 0.0}  # s, by the driver's status name
 OUTLIER = 5.0  # robust standard deviations: a sample's residual further from the fit is left out
 OUTLIER_FLOOR = 0.005  # Nm: the robust standard deviation taken as at least this (noise-free simulations)
 OUTLIER_ROUNDS = 3  # refits without the outliers at most
@@ -167,14 +169,18 @@ def load_joint_states(bag: str | Path, topic: str = JOINT_STATES) -> JointStates
     return JointStates(topic, names, (stamps - stamps[0]) * 1e-9, col(0), col(1), col(2))
 
 
-def recorded_drivers(bag: str | Path, limit: int = 50) -> set[str]:
+def recorded_drivers(bag: str | Path, limit: int = 50) -> dict[str, str]:
     """The effort conventions of the drivers whose status is in the bag's first ``limit``
-    ``/diagnostics`` messages (``DRIVER_STATUS``)."""
+    ``/diagnostics`` messages (a status's ``effort`` value, else ``DRIVER_STATUS`` of its name), each
+    with the status's name."""
     if not scan(bag).counts.get(DIAGNOSTICS):
-        return set()
-    found: set[str] = set()
+        return {}
+    found: dict[str, str] = {}
     for i, d in enumerate(read_messages(bag, [DIAGNOSTICS])):
-        found.update(DRIVER_STATUS[s.name] for s in d.msg.status if s.name in DRIVER_STATUS)
+        for s in d.msg.status:
+            said = next((kv.value for kv in s.values if kv.key == "effort" and kv.value in EFFORTS[1:]), None)
+            if said or s.name in DRIVER_STATUS:
+                found.setdefault(said or DRIVER_STATUS[s.name], s.name)
         if i + 1 >= limit:
             break
     return found
@@ -357,12 +363,13 @@ class Fit:
     window: float  # s, the smoothing window used
 
 
-def identify(states: JointStates, model: Any, effort: str = "auto", drivers: set[str] | frozenset = frozenset(),
+def identify(states: JointStates, model: Any, effort: str = "auto", drivers: Mapping[str, str] | None = None,
              min_speed: float = 0.05, window: float = 0.02, min_samples: int = 50,
              effort_delay: float | None = None) -> Fit:
     """The fit of every joint of ``states`` against ``model`` (an ``ArmModel``; joints matched by
     name); ``drivers``: the effort conventions the bag's diagnostics name (``recorded_drivers``);
-    ``effort_delay``: s the effort lags its stamp (None: ``EFFORT_DELAY`` of the convention)."""
+    ``effort_delay``: s the effort lags its stamp (None: ``DRIVER_DELAY`` of the one driver the
+    diagnostics name, else ``EFFORT_DELAY`` of the convention)."""
     if effort not in EFFORTS:
         raise ValueError(f"effort must be one of {EFFORTS}, got {effort!r}")
     if effort_delay is not None and not abs(effort_delay) <= 0.1:
@@ -390,6 +397,8 @@ def identify(states: JointStates, model: Any, effort: str = "auto", drivers: set
         raise NoJointStatesError(f"{states.topic}: no joint moved faster than {min_speed:g} rad/s over a full "
                                  f"smoothing window ({len(t)} states, {segments} segment(s))")
     rigid, g = model_torques(model.model, q[moving], dq_s[moving], ddq[moving])
+    if effort_delay is None and drivers is not None and len(drivers) == 1:
+        effort_delay = DRIVER_DELAY.get(next(iter(drivers.values())))  # the named driver's, either convention
     delays = {k: EFFORT_DELAY[k] if effort_delay is None else effort_delay for k in EFFORT_DELAY}
     c = coef[moving][:, :, nq:]  # the effort's quadratic around each state
     # the effort stamped t was applied from the state at t - delay: the state at t got the effort at t + delay
@@ -399,9 +408,9 @@ def identify(states: JointStates, model: Any, effort: str = "auto", drivers: set
     by_data, other = sorted(rms, key=rms.__getitem__)
     if effort != "auto":
         chosen, why = effort, "given (--effort)"
-    elif len(drivers) == 1:
+    elif drivers is not None and len(drivers) == 1:
         chosen = next(iter(drivers))
-        why = f"the bag's /diagnostics name the driver ({next(k for k, v in DRIVER_STATUS.items() if v == chosen)!r})"
+        why = f"the bag's /diagnostics name the driver ({drivers[chosen]!r})"
     else:
         chosen = by_data
         why = (f"the data: residual RMS {rms[by_data]:.3g} Nm as {by_data!r} vs {rms[other]:.3g} Nm as {other!r}; "
@@ -486,7 +495,7 @@ def identify_bag(bag: str | Path, *, arm: str | None = None, model: str = "auto"
             part, part_source = ("peg" if task == "peg" else "gear"), f"the recorded task {task!r}"
     values = np.broadcast_to(np.asarray(JOINT_ARMATURE if armature is None else armature, float), (7,)).copy()
     arm_, kind = arm_model(model, states.names, urdf, part, values)
-    drivers = recorded_drivers(bag) if effort == "auto" else set()
+    drivers = recorded_drivers(bag) if effort == "auto" else {}
     fit = identify(states, arm_, effort, drivers, min_speed, window, min_samples, effort_delay)
     warnings = [f"{j.name}: not identified: {j.reason}" for j in fit.joints if not j.identified]
     warnings += [f"{j.name}: negative friction (Coulomb {j.coulomb:.3g} Nm, viscous {j.viscous:.3g} Nm s/rad) is not "

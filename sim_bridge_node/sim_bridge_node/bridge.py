@@ -69,7 +69,12 @@ class SimBridge:
         self._command_sim_time = 0.0  # sim time (s) when the last command was accepted
         self.hold_delay = float("nan")  # sim s the last command was applied before the latest timeout hold
         self._hold_anchor: np.ndarray | None = None  # q where the current safe hold began
-        self.torque = np.zeros(env.nu)  # torque applied in the last step (Nm), what `effort` reports
+        self._hold_gravity = np.zeros(env.nu)  # the gravity part of the last hold torque
+        self.torque = np.zeros(env.nu)  # torque applied in the last step (Nm), gravity included
+        # what ``effort`` reports: the applied torque, less the gravity the driver added on its own with
+        # driver_gravity_compensation (as Franka's driver reports it), so a controller that seeds its rate
+        # limit from effort starts from its own command's part
+        self.effort = np.zeros(env.nu)
         self.clock_offset = 0.0  # sim time (s) of all earlier episodes: the clock never goes back
         self.steps = 0
         self.bad_commands = 0
@@ -116,7 +121,8 @@ class SimBridge:
         """Safe hold of the driver: gravity compensation + joint damping + a joint spring
         (``hold_stiffness``) to the position where this hold began (its anchor)."""
         cfg, env = self.config, self.env
-        tau = self.gravity() - cfg.hold_damping * env.dq
+        self._hold_gravity = self.gravity()
+        tau = self._hold_gravity - cfg.hold_damping * env.dq
         if cfg.hold_stiffness > 0.0:
             q = env.q
             if self._hold_anchor is None:
@@ -209,9 +215,17 @@ class SimBridge:
         """A valid command is waiting (lockstep) or held (realtime)."""
         return self._has_command
 
-    def _apply(self, tau: np.ndarray) -> None:
+    def _apply(self, tau: np.ndarray, added: np.ndarray | None) -> None:
+        """One step with ``tau``, of which ``added`` (None: nothing) is the driver's own gravity."""
         self.env.step(tau)  # clamps to the actuator limits; raises (no step) if not finite
+        self._applied(added)
+
+    def _applied(self, added: np.ndarray | None) -> None:
         self.torque[:] = self.env.last_torque
+        if added is None:
+            self.effort[:] = self.torque
+        else:
+            np.subtract(self.torque, added, out=self.effort)
         self.steps += 1
 
     def step_with(self, tau: np.ndarray) -> bool:
@@ -222,30 +236,34 @@ class SimBridge:
         if tau.shape != (env.nu,):
             ok, self._error = False, ("size", tau.size)
         elif self.config.driver_gravity_compensation:
-            ok = env.step_if_finite(tau + self.gravity())  # the gravity of a broken state is not finite
+            added = self.gravity()
+            ok = env.step_if_finite(tau + added)  # the gravity of a broken state is not finite
         else:
+            added = None
             ok = env.step_if_finite(tau)
         if not ok:
             self.bad_commands += 1
             if tau.shape == (env.nu,):
                 self._error = ("finite", np.array(tau, dtype=np.float64))
             return False
-        self.torque[:] = env.last_torque
-        self.steps += 1
+        self._applied(added)
         self._has_command = False
         return True
 
-    def _commanded(self) -> np.ndarray:
+    def _apply_command(self) -> None:
+        """One step with the held command (plus the driver's gravity with driver_gravity_compensation)."""
         if self.config.driver_gravity_compensation:
-            return self._command + self.gravity()
-        return self._command.copy()
+            added = self.gravity()
+            self._apply(self._command + added, added)
+        else:
+            self._apply(self._command.copy(), None)
 
     # ------------------------------------------------------------------ stepping
     def step_commanded(self) -> bool:
         """Lockstep: one physics step with the waiting command, which is used up. False if none waits."""
         if not self._has_command:
             return False
-        self._apply(self._commanded())
+        self._apply_command()
         self._has_command = False
         return True
 
@@ -260,10 +278,11 @@ class SimBridge:
             self.hold_delay = self.sim_time - self._command_sim_time
         if stale:
             self.hold_steps += 1
-            self._apply(self.hold_torque())
+            hold = self.hold_torque()  # gravity included: with driver_gravity_compensation, not the command's part
+            self._apply(hold, self._hold_gravity if self.config.driver_gravity_compensation else None)
         else:
             self._hold_anchor = None  # the next hold anchors where it begins
-            self._apply(self._commanded())
+            self._apply_command()
         self.in_hold = stale
         return stale
 
@@ -289,5 +308,6 @@ class SimBridge:
         self._has_command = False
         self._hold_anchor = None  # a new world: a hold anchors at the reset state
         self.torque[:] = 0.0
+        self.effort[:] = 0.0
         self.in_hold = True
         return obs

@@ -348,7 +348,7 @@ class SimBridgeNode(Node):
         raw.set_stamp(self.bridge.stamp_ns)
         raw.floats["position"][:] = env.q
         raw.floats["velocity"][:] = env.dq
-        raw.floats["effort"][:] = self.bridge.torque
+        raw.floats["effort"][:] = self.bridge.effort
         if self.timing is not None:
             self.timing.published(self.bridge.stamp_ns, time.perf_counter())
         self._state_pub.publish(raw.payload())
@@ -390,6 +390,7 @@ class SimBridgeNode(Node):
             status.level, status.message = DiagnosticStatus.OK, "running"
         values = {
             "mode": self.params["mode"], "task": b.env.task, "sim_time": f"{b.sim_time:.4f}",
+            "effort": "no-gravity" if b.config.driver_gravity_compensation else "applied",
             "steps": b.steps, "steps_per_s": f"{(b.steps - steps0) / wall:.1f}",
             "real_time_factor": f"{(b.sim_time - sim0) / wall:.3f}",
             "safe_hold": holding, "command_timeouts": b.command_timeouts, "hold_steps": b.hold_steps,
