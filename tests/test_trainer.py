@@ -328,3 +328,21 @@ def test_init_sigma_scale_narrows_the_loaded_spread(tmp_path):
                                    0.5 * torch.exp(getattr(full.explorer, name)).detach().numpy(), rtol=1e-12)
     with pytest.raises(ValueError, match="init_sigma_scale must be in"):
         TrainConfig.from_sources(GEAR_LEARN, {"init_sigma_scale": 0.0})
+
+
+def test_fine_tuning_updates_stop_at_init_target_kl(tmp_path):
+    """From a checkpoint the updates use init_target_kl (a loaded policy is kept near); a new run target_kl."""
+    Trainer(TrainConfig.from_sources(GEAR_LEARN, GEAR_TINY), tmp_path / "sim").run(evaluate=False)
+    ckpt = str(tmp_path / "sim" / CHECKPOINT)
+    epochs = {}
+    for kl in (0.0, 1e-12):
+        tuned = Trainer(TrainConfig.from_sources(GEAR_LEARN, {**GEAR_TINY, "iterations": 1, "init_checkpoint": ckpt,
+                                                              "init_target_kl": kl}), tmp_path / f"kl{kl}")
+        tuned.resume_or_init()
+        tuned.run(evaluate=False)
+        epochs[kl] = tuned.history[-1]["epochs"]
+    assert epochs[0.0] == TrainConfig.from_sources(GEAR_LEARN, {}).update_epochs and epochs[1e-12] < epochs[0.0], epochs
+    assert TrainConfig.from_sources(GEAR_LEARN, {"init_checkpoint": ckpt}).update_target_kl == 0.02
+    assert TrainConfig.from_sources(GEAR_LEARN, {}).update_target_kl == 0.0
+    with pytest.raises(ValueError, match="init_target_kl"):
+        TrainConfig.from_sources(GEAR_LEARN, {"init_target_kl": -1.0})

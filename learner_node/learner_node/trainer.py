@@ -54,7 +54,8 @@ EVAL_SEED_BASE = 1_000_000_000  # held-out evaluation starts: seeds >= this; tra
 # (with friction_coulomb / friction_viscous set, they draw their joint friction from the same ranges)
 # settings that may differ between a checkpoint and the run that resumes it (init_checkpoint is
 # read only by a run's start: a resumed run continues from its own checkpoint whatever it says)
-RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes", "init_checkpoint", "init_sigma_scale"})
+RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes", "init_checkpoint", "init_sigma_scale",
+                               "init_target_kl"})
 # the settings that shape a policy's parameters, per policy type (with the task's dimension)
 ARCHITECTURE = {"nf": ("n_flow", "n_hidden", "activation"), "mlp": ("mlp_hidden", "mlp_activation")}
 # settings only the NF policy reads: an MLP run's checkpoint resumes whatever they are
@@ -190,7 +191,7 @@ class Trainer:
                 params += list(self.value_net.parameters())
             self.optimizer = make_optimizer(params, cfg.learning_rate)
         self.settings = PPOSettings(cfg.update_epochs, cfg.minibatch_size, cfg.clip_coef, cfg.vf_coef,
-                                    cfg.max_grad_norm, cfg.target_kl)
+                                    cfg.max_grad_norm, cfg.update_target_kl)
         self.rng = np.random.default_rng(cfg.seed)
         self.iteration = 0  # completed iterations
         self.history: list[dict[str, float]] = []
@@ -295,7 +296,7 @@ class Trainer:
             if not episodes:
                 raise ValueError("params exploration: every episode failed")
             stats = param_ppo_update(self.explorer, self.optimizer, self._pending, adv, self.cfg.update_epochs,
-                                     self.cfg.clip_coef, self.cfg.target_kl, self.cfg.param_ratio == "group")
+                                     self.cfg.clip_coef, self.cfg.update_target_kl, self.cfg.param_ratio == "group")
             self.explorer.decay(self.cfg.param_sigma_decay)
             self._pending = None
             decisions = sum(len(e.reward) for e in episodes)
