@@ -14,6 +14,7 @@ from learner_node.param_explore import (
     ParamExploration,
     follow_sigma,
     make_param_optimizer,
+    pair_mean_advantages,
     paired_advantages,
     param_ppo_update,
 )
@@ -83,6 +84,29 @@ def test_update_moves_the_gains_toward_the_better_draws():
         assert np.isfinite(stats["approx_kl"])
     assert float(policy.ln_s[2].detach()) < z0 - 0.2
     torch.testing.assert_close(policy.S, policy.gains()[0].detach())  # synced for the checkpoint
+
+
+def test_pair_mean_advantages_are_symmetric_and_centred():
+    adv = pair_mean_advantages(np.array([1.0, 3.0, 10.0, 14.0, np.nan, 0.0, 7.0]))
+    np.testing.assert_allclose(adv, [-5.0, -5.0, 5.0, 5.0, 0.0, 0.0, 0.0])  # pair means 2, 12; NaN pair, odd one: 0
+
+
+def test_spread_narrows_when_the_wider_draws_do_worse_only_with_the_pair_mean_signal():
+    """Every draw returns -|eps|^2 (the mean is already best): the pairs' differences are 0, so without the
+    pair-mean signal the stds get no gradient; with it they shrink."""
+    sigmas = {}
+    for signal in (False, True):
+        policy, explorer = _policy()
+        opt = make_param_optimizer(explorer, 0.1, 0.05)
+        rng = np.random.default_rng(3)
+        for _ in range(3):
+            theta, eps = explorer.sample(14, rng)
+            returns = -np.sum(eps**2, axis=1)
+            adv = paired_advantages(returns) + (pair_mean_advantages(returns) if signal else 0.0)
+            param_ppo_update(explorer, opt, theta, adv, epochs=5, clip_coef=0.2)
+        sigmas[signal] = explorer.sigma().detach().numpy()
+    np.testing.assert_allclose(sigmas[False], 0.4, rtol=1e-9)
+    assert np.all(sigmas[True] < 0.4 * 0.8), sigmas[True]
 
 
 def test_trainer_params_mode_pairs_starts_and_resumes_exactly(tmp_path):

@@ -38,6 +38,7 @@ PARAM_FLOWS = ("all", "output", "subspace")
 PARAM_STEPS = ("initial", "current")
 PARAM_RATIOS = ("joint", "group")
 PARAM_ADV_SCALES = ("batch", "running")
+PARAM_SPREAD_SIGNALS = ("none", "pair_mean")
 PHYSICS_DT = 0.001  # s, the simulator's (and controller's) step
 
 # Paper settings per task (Khader et al., ICRA 2021); used for the fields left at None.
@@ -123,6 +124,13 @@ class TrainConfig:
     param_adv_scale: str = "batch"
     """exploration=params: the pairs' advantages are divided by this iteration's RMS (batch) or by the mean
     RMS of all iterations so far (running: iterations whose rollouts differ little step little)."""
+    param_spread_signal: str = "none"
+    """exploration=params: what the PPO update gives the exploration stds. none: the pairs' advantages
+    only; they are antisymmetric in the mirrored draws, so the stds' gradient is zero at the start of
+    each update and ``param_sigma_lr`` moves them by noise. pair_mean: both members of a pair also get
+    the pair's mean return less the batch's (as PGPE's std update, Sehnke et al. 2010): the spread
+    narrows when the wider draws do worse and widens when they do better; the mean's gradient is
+    unchanged (a symmetric advantage cancels in it)."""
     param_step: str = "initial"
     """exploration=params: the mean's Adam step is param_lr times the group's initial std (initial), or its
     std at each update (current: the step shrinks with the exploration, so one update moves the mean by
@@ -243,6 +251,7 @@ class TrainConfig:
         _int_range("param_flow_dim", self.param_flow_dim, 1, 100_000)
         _choice("param_ratio", self.param_ratio, PARAM_RATIOS)
         _choice("param_adv_scale", self.param_adv_scale, PARAM_ADV_SCALES)
+        _choice("param_spread_signal", self.param_spread_signal, PARAM_SPREAD_SIGNALS)
         _non_negative("param_lr_flow", self.param_lr_flow)
         _non_negative("flow_input_scale", self.flow_input_scale)
         _positive("param_lr", self.param_lr)

@@ -179,13 +179,17 @@ class ParamExploration(nn.Module):
         small shaping terms (every rollout inserts) step as far as one where half of them fail: late in
         a gear run that walked the lateral stiffness down by 2x (towards less torque) until rollouts
         stalled on the shaft again. With a running scale such iterations take small steps."""
+        scale = self.running_scale(raw)
+        return np.asarray(raw, dtype=np.float64) / scale if scale > 0.0 else np.asarray(raw, dtype=np.float64)
+
+    def running_scale(self, raw: np.ndarray) -> float:
+        """Add this iteration's pair RMS of ``raw`` (pair advantages) and return the mean so far (0: none)."""
         rms = pair_rms(raw)
         if rms > 0.0:
             self.adv_rms_sum += rms
             self.adv_rms_count += 1.0
         count = float(self.adv_rms_count)
-        scale = float(self.adv_rms_sum) / count if count else 0.0
-        return np.asarray(raw, dtype=np.float64) / scale if scale > 0.0 else np.asarray(raw, dtype=np.float64)
+        return float(self.adv_rms_sum) / count if count else 0.0
 
     def decay(self, factor: float) -> None:
         """Multiply every exploration std by ``factor``."""
@@ -226,6 +230,22 @@ def paired_advantages(returns: np.ndarray, normalize: bool = True) -> np.ndarray
     adv[1 : 2 * m : 2] = -diff
     scale = float(np.sqrt(np.mean(diff * diff))) if m else 0.0
     return adv / scale if scale > 0.0 and normalize else adv
+
+
+def pair_mean_advantages(returns: np.ndarray) -> np.ndarray:
+    """Each mirrored pair's mean return less the mean over the pairs, for both members (0 for an
+    unpaired last rollout and a pair with a NaN return). Symmetric within a pair: it cancels in the
+    mean's gradient and drives only the stds (PGPE's std update, Sehnke et al. 2010)."""
+    r = np.asarray(returns, dtype=np.float64)
+    adv = np.zeros_like(r)
+    m = len(r) // 2
+    mean = 0.5 * (r[0 : 2 * m : 2] + r[1 : 2 * m : 2])
+    ok = np.isfinite(mean)
+    if ok.any():
+        mean = np.where(ok, mean - mean[ok].mean(), 0.0)
+        adv[0 : 2 * m : 2] = mean
+        adv[1 : 2 * m : 2] = mean
+    return adv
 
 
 def pair_rms(advantages: np.ndarray) -> float:

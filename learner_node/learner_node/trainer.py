@@ -30,7 +30,15 @@ from nf_core.reward import REWARD_TERMS
 from .config import TrainConfig
 from .flow import init_flow_weights, move_flow_to_goal, rescale_flow_weights
 from .mlp_policy import MLPEvaluator, MLPPolicy
-from .param_explore import ParamExploration, follow_sigma, make_param_optimizer, paired_advantages, param_ppo_update
+from .param_explore import (
+    ParamExploration,
+    follow_sigma,
+    make_param_optimizer,
+    pair_mean_advantages,
+    pair_rms,
+    paired_advantages,
+    param_ppo_update,
+)
 from .policy import NFPolicy
 from .ppo import (
     LinearFeatureBaseline,
@@ -63,7 +71,8 @@ NF_ONLY = frozenset({"n_flow", "n_hidden", "activation", "flow_init", "stiffness
                      "damping_axial", "gains", "exploration", "param_sigma_gains", "param_sigma_flow", "param_lr",
                      "param_sigma_lr", "param_sigma_decay", "param_flow",
                      "flow_input_scale", "param_step",
-                     "param_lr_flow", "param_ratio", "param_flow_dim", "param_adv_scale"})
+                     "param_lr_flow", "param_ratio", "param_flow_dim", "param_adv_scale",
+                     "param_spread_signal"})
 TIMING_KEYS = ("rollout_seconds", "update_seconds", "wall_seconds")
 
 
@@ -288,10 +297,12 @@ class Trainer:
             if self.cfg.param_step == "current":
                 follow_sigma(self.explorer, self.optimizer, self.cfg.param_lr, self.cfg.param_lr_flow)
             returns = np.array([np.nan if e is None else e.episode_return for e in episodes])
-            if self.cfg.param_adv_scale == "running":
-                adv = self.explorer.running_advantages(paired_advantages(returns, normalize=False))
-            else:
-                adv = paired_advantages(returns)
+            adv = paired_advantages(returns, normalize=False)
+            scale = self.explorer.running_scale(adv) if self.cfg.param_adv_scale == "running" else pair_rms(adv)
+            if self.cfg.param_spread_signal == "pair_mean":
+                adv = adv + pair_mean_advantages(returns)
+            if scale > 0.0:
+                adv = adv / scale
             episodes = [e for e in episodes if e is not None]
             if not episodes:
                 raise ValueError("params exploration: every episode failed")
