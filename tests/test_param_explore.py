@@ -96,7 +96,7 @@ def test_spread_narrows_when_the_wider_draws_do_worse_only_with_the_pair_mean_si
     pair-mean signal the stds get no gradient; with it they shrink."""
     sigmas = {}
     for signal in (False, True):
-        policy, explorer = _policy()
+        _, explorer = _policy()
         opt = make_param_optimizer(explorer, 0.1, 0.05)
         rng = np.random.default_rng(3)
         for _ in range(3):
