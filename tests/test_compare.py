@@ -36,6 +36,8 @@ def test_table_and_figure_come_from_the_runs_files(runs, tmp_path, capsys):
     success = [r["success_rate"] for r in rows]
     assert summary.iterations == 2 and summary.success_first == pytest.approx(sum(success) / 2)
     assert summary.max_kl == max(r["approx_kl"] for r in rows)
+    window = next((i + 1 for i in range(4, len(success)) if sum(success[i - 4:i + 1]) / 5 >= 0.9), None)
+    assert summary.window == (window or float("inf"))  # two iterations: no 5-iteration window yet
     evaluation = json.loads((runs / "a" / "block" / "nf-seed1" / "evaluation.json").read_text())
     assert summary.eval_success == evaluation["success_rate"]
 
@@ -44,7 +46,7 @@ def test_table_and_figure_come_from_the_runs_files(runs, tmp_path, capsys):
                          "--markdown", str(table)]) == 0
     assert out.stat().st_size > 10_000
     lines = table.read_text().splitlines()
-    assert lines[2].startswith("| two seeds | 2 | 2, 2 |")
+    assert lines[2].startswith("| two seeds | 2 | 2, 2 |") and "| -, - (-) |" in lines[2]  # no window
     assert lines[3].startswith("| unevaluated | 1 | 1 |") and "| - |" in lines[3]  # no evaluation: a dash
     assert "two seeds" in capsys.readouterr().out
 
@@ -55,6 +57,16 @@ def test_equal_budgets_cut_every_run_and_drop_a_later_evaluation(runs):
     assert full.eval_success is not None and cut.eval_success is None  # evaluated after iteration 2, not 1
     assert cut.iterations == 1 and cut_rows == rows[:1]
     assert cut.success_first == cut.success_last == rows[0]["success_rate"]
+
+
+def test_the_window_and_the_lowest_success_after_it(tmp_path):
+    run = tmp_path / "r"
+    run.mkdir()
+    success = [0.2, 0.9, 1.0, 0.9, 0.9, 0.8, 1.0, 0.7, 1.0]  # trailing 5-iteration mean 0.90 first at 6
+    rows = [{"iteration": i + 1, "success_rate": s, "approx_kl": 0.1} for i, s in enumerate(success)]
+    (run / "metrics.json").write_text(json.dumps(rows))
+    summary, _ = summarize(run)
+    assert summary.window == 6 and summary.min_after == 0.7
 
 
 def test_bad_groups_are_refused_with_a_reason(runs, tmp_path, capsys):

@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from .report import EVALUATION_FILE, WINDOW  # the same 5-iteration windows as Table I
+# the same 5-iteration windows as Table I
+from .report import EVALUATION_FILE, WINDOW, iterations_to_success, median_iterations
 
 
 @dataclass(frozen=True)
@@ -30,6 +32,8 @@ class RunSummary:
     success_last: float  # ... and over the last WINDOW
     eval_success: float | None  # deterministic held-out evaluation (None: not evaluated)
     max_kl: float  # largest approx_kl of any update
+    window: float = math.inf  # the 90 % window: first iteration whose trailing WINDOW mean is >= 0.9 (inf: none)
+    min_after: float | None = None  # lowest training success after the window (None: no window, or none after)
 
 
 def run_folders(root: Path) -> list[Path]:
@@ -51,9 +55,11 @@ def summarize(run: Path, iterations: int | None = None) -> tuple[RunSummary, lis
         result = json.loads(evaluation.read_text())
         if int(result.get("iteration", -1)) == int(rows[-1]["iteration"]):
             eval_success = float(result["success_rate"])
+    window = iterations_to_success(success)
+    after = success[int(window):] if math.isfinite(window) else []
     summary = RunSummary(run.name, len(rows), sum(success[:WINDOW]) / len(success[:WINDOW]),
                          sum(success[-WINDOW:]) / len(success[-WINDOW:]), eval_success,
-                         max(float(r.get("approx_kl", 0.0)) for r in rows))
+                         max(float(r.get("approx_kl", 0.0)) for r in rows), window, min(after) if after else None)
     return summary, rows
 
 
@@ -63,10 +69,15 @@ def markdown_table(groups: Mapping[str, Sequence[RunSummary]]) -> str:
         return ", ".join("-" if v is None else fmt.format(v) for v in values)
 
     lines = [f"| group | runs | iterations | success, it. 1-{WINDOW} | success, last {WINDOW} it. | "
-             "held-out eval success | largest approx_kl |", "|---|---|---|---|---|---|---|"]
+             f"90 % window (median) | lowest success after it | held-out eval success | largest approx_kl |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for label, runs in groups.items():
+        windows = [r.window if math.isfinite(r.window) else None for r in runs]
+        median = median_iterations([r.window for r in runs])
         lines.append(f"| {label} | {len(runs)} | {each([r.iterations for r in runs], '{:d}')} | "
                      f"{each([r.success_first for r in runs])} | {each([r.success_last for r in runs])} | "
+                     f"{each(windows, '{:.0f}')} ({'-' if not math.isfinite(median) else f'{median:.0f}'}) | "
+                     f"{each([r.min_after for r in runs])} | "
                      f"{each([r.eval_success for r in runs])} | {each([r.max_kl for r in runs], '{:.3f}')} |")
     return "\n".join(lines)
 
