@@ -5,6 +5,7 @@ scene is compiled.
     python -m nf_bringup.testing.franky                  # as `franky-sim -s mujoco --hostname 127.0.0.1`
     python -m nf_bringup.testing.franky --frictionless
     python -m nf_bringup.testing.franky --gear [--gear-load] [--frictionless]
+    kill -USR1 <its PID>                                 # a reflex: the running motion is aborted
 
     with FrankySim(Path("franky-sim.log"), gear=True) as sim:   # then connect pylibfranka to 127.0.0.1
         ...
@@ -16,12 +17,18 @@ spring short by friction / stiffness, which would hide the controller's own free
 welds the gear to the hand, built by the same builders as our MuJoCo scenes so the numbers agree;
 franky-sim's own geoms touch neither. ``--gear-load`` also gives the gear to franky-sim's gravity
 compensation as the end-effector load, as Desk's settings do on a real arm.
+
+franky-sim simulates no collisions and so no reflexes. ``SIGUSR1`` makes one: the running motion's
+Move command is answered ``kReflexAborted`` and the robot goes idle, holding where it is, as a real
+arm does after a reflex; libfranka then raises its "motion aborted by reflex" ``ControlException`` in
+the driver, and franky-sim accepts the automatic error recovery that follows.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import socket
 import subprocess
 import sys
@@ -49,10 +56,10 @@ def port_busy(host: str = HOST, port: int = PORT) -> bool:
 class FrankySim:
     """franky-sim as a child process (context manager), its output in ``log_path``; ``frictionless``,
     ``gear`` and ``gear_load`` start this module's launcher with those options instead of
-    ``franky-sim -s mujoco``."""
+    ``franky-sim -s mujoco``, as does ``reflexes`` (for ``inject_reflex``) without them."""
 
     def __init__(self, log_path: Path, timeout: float = 60.0, frictionless: bool = False,
-                 gear: bool = False, gear_load: bool = False) -> None:
+                 gear: bool = False, gear_load: bool = False, reflexes: bool = False) -> None:
         if port_busy():
             raise RuntimeError(f"{HOST}:{PORT} is taken: another robot simulator runs on this machine")
         if gear_load and not gear:
@@ -61,7 +68,7 @@ class FrankySim:
         self.frictionless = frictionless
         self.gear = gear
         flags = [f for f, on in (("--frictionless", frictionless), ("--gear", gear), ("--gear-load", gear_load)) if on]
-        if flags:
+        if flags or reflexes:
             cmd = [sys.executable, "-m", "nf_bringup.testing.franky", *flags]
         else:
             cmd = [str(Path(sys.executable).parent / "franky-sim"), "-s", "mujoco", "--hostname", HOST]
@@ -79,6 +86,21 @@ class FrankySim:
     def pid(self) -> int:
         """The simulator's PID."""
         return self.proc.pid
+
+    def inject_reflex(self, timeout: float = 5.0) -> str:
+        """A reflex now (SIGUSR1 to this launcher): the line the simulator logged about it. Only the
+        launcher answers the signal (``reflexes``, or any of its options)."""
+        if self.proc.args[0] != sys.executable:
+            raise RuntimeError("inject_reflex needs FrankySim(..., reflexes=True)")
+        before = self.log_path.read_text().count("SIGUSR1")
+        self.proc.send_signal(signal.SIGUSR1)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            lines = [ln for ln in self.log_path.read_text().splitlines() if "SIGUSR1" in ln]
+            if len(lines) > before:
+                return lines[-1]
+            time.sleep(0.02)
+        raise RuntimeError(f"franky-sim did not report the reflex within {timeout} s")
 
     def stop(self) -> None:
         """SIGINT (its clean shutdown), then SIGKILL, by PID."""
@@ -237,6 +259,37 @@ def joint_frictionloss(model: Any, names: list[str]) -> list[float]:
             for n in names]
 
 
+def inject_reflex(server: Any) -> list[int]:
+    """Abort every robot's running motion as a reflex does (its Move answered ``kReflexAborted``, the
+    robot idle and holding); the ids of the motions aborted (none: no motion ran)."""
+    from franky_sim.franka_robot_protocol import MoveStatus, RobotCommand
+    from franky_sim.franka_server import BaseCommand
+
+    aborted = []
+    for rs in server.robot_servers:
+        motion = rs.current_motion_id
+        if motion:
+            rs.stop_motion(send_preemption_signal=False)
+            rs.reset_current_motion_id()
+            BaseCommand.send_response(rs._tcp_socket, RobotCommand.kMove, motion, MoveStatus.kReflexAborted)
+            aborted.append(motion)
+    return aborted
+
+
+def serve(server: Any) -> None:
+    """franky-sim's 1 kHz loop (``run_forever``), with a reflex injected on each ``SIGUSR1``."""
+    wanted: list[bool] = []
+    signal.signal(signal.SIGUSR1, lambda *_: wanted.append(True))
+    server.running = True
+    while server.running:
+        if wanted:
+            wanted.clear()
+            aborted = inject_reflex(server)
+            print(f"reflex injected (SIGUSR1): motion {aborted} aborted" if aborted
+                  else "reflex asked for (SIGUSR1), but no motion runs: nothing aborted", flush=True)
+        server.run_once(True)
+
+
 def main(argv: list[str] | None = None) -> None:
     """``python -m nf_bringup.testing.franky``: serve franky-sim's FR3 until interrupted."""
     parser = argparse.ArgumentParser(prog="python -m nf_bringup.testing.franky",
@@ -278,7 +331,7 @@ def main(argv: list[str] | None = None) -> None:
                 print(gear_report(sim.model, sim.data), flush=True)
             print(f"{READY} using '{robot.hostname}' as the robot IP address", flush=True)
             try:
-                server.run_forever()
+                serve(server)
             except KeyboardInterrupt:
                 print("\nShutting down server...", flush=True)
 
