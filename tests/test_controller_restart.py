@@ -21,8 +21,7 @@ from ros_testing import REPO, RosProcess, allocate_domain_id
 from test_nodes import RELIABLE, Probe, policy_msg
 
 MAX_STEP = panda_spec.TORQUE_RATE_LIMIT * 1e-3  # Nm per 1 ms command
-# the probe keeps every command: with a history of 10 a lagging probe lost the second controller's first
-# commands and took a later one (its hold, ramped down already) for the first
+# the probe keeps every command it is sent (a lagging reader with a history of 10 loses some)
 EVERY = QoSProfile(depth=100_000, reliability=ReliabilityPolicy.RELIABLE)
 CONTROLLER = ["-m", "nf_controller_node.node", "--ros-args", "-p", "gravity_compensation:=false",
               "-p", "reset_service:=''", "-p", "state_timeout:=2.0", "-p", "max_consecutive_misses:=500"]
@@ -41,6 +40,7 @@ def test_restarted_controller_starts_from_the_applied_torque(tmp_path):
                                               m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec))
     commands = probe.collect(Float64MultiArray, "effort_controller/commands", EVERY,
                              convert=lambda m: np.array(m.data))
+    watch = probe.node.create_subscription(Float64MultiArray, "effort_controller/commands", lambda m: None, EVERY)
     driver = RosProcess([str(REPO / "tests" / "peers" / "hw_driver.py")], domain, tmp_path / "driver.log")
     first = RosProcess([*CONTROLLER, "-p", "idle_mode:=policy"], domain, tmp_path / "first.log")
     second = None
@@ -62,7 +62,17 @@ def test_restarted_controller_starts_from_the_applied_torque(tmp_path):
         assert probe.spin_until(lambda: states[-1][1][3] > killed_wall + 0.1, 30), "no joint state after the kill"
         held = states[-1][1][2]
         assert np.abs(held).max() > 2.0, f"the driver applies only {held}: nothing to ramp from"
+        # A reader sees only what a writer sends after they matched, and discovery can take seconds on
+        # loaded cores: with the driver paused (no states, so no commands) until the probe has matched
+        # the new controller's publisher, the probe sees its first command
+        driver.proc.send_signal(signal.SIGSTOP)
+        matched_before = watch.get_publisher_count()  # the dead controller's may still be counted
         second = RosProcess([*CONTROLLER, "-p", "idle_mode:=hold"], domain, tmp_path / "second.log")
+        try:
+            assert probe.spin_until(lambda: watch.get_publisher_count() > matched_before, 60), second.log()
+            probe.spin_for(0.2)
+        finally:
+            driver.proc.send_signal(signal.SIGCONT)
         assert probe.spin_until(lambda: commands and commands[-1][0] > killed + 0.2, 60), second.log()
         assert probe.spin_until(lambda: sum(t > killed for t, _ in commands[-200:]) >= 200, 30), second.log()
         new = [c for t, c in commands if t > killed]  # the second controller's, from its first on
