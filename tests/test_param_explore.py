@@ -206,10 +206,11 @@ def test_subspace_exploration_moves_the_output_layers_along_fixed_directions():
 def test_running_advantage_scale_shrinks_small_differences():
     """param_adv_scale=running: an iteration whose pairs differ 10x less than the earlier ones steps less."""
     _, explorer = _policy()
-    big = paired_advantages(np.array([0.0, 100.0, 50.0, -50.0]), normalize=False)
-    np.testing.assert_allclose(explorer.running_advantages(big), paired_advantages(np.array([0.0, 100.0, 50.0, -50.0])))
+    returns = np.array([0.0, 100.0, 50.0, -50.0])
+    big = paired_advantages(returns, normalize=False)
+    np.testing.assert_allclose(big / explorer.running_scale(big), paired_advantages(returns))
     small = paired_advantages(np.array([0.0, 10.0, 5.0, -5.0]), normalize=False)
-    scaled = explorer.running_advantages(small)
+    scaled = small / explorer.running_scale(small)
     rms_big = np.sqrt(np.mean(big[0::2] ** 2))
     np.testing.assert_allclose(scaled, small / ((rms_big + rms_big / 10) / 2))
     assert np.sqrt(np.mean(scaled[0::2] ** 2)) < 0.2

@@ -171,19 +171,15 @@ class ParamExploration(nn.Module):
                 state[key] = getattr(self, key).detach().clone()
         return super().load_state_dict(state, strict=strict, assign=assign)
 
-    def running_advantages(self, raw: np.ndarray) -> np.ndarray:
-        """``raw`` pair advantages divided by the mean pair RMS over all iterations so far (this one
-        included), not by this iteration's own.
+    def running_scale(self, raw: np.ndarray) -> float:
+        """Add this iteration's pair RMS of ``raw`` (pair advantages) and return the mean pair RMS over all
+        iterations so far, this one included (0: none), to divide the advantages by
+        (``param_adv_scale=running``).
 
         Normalising each batch to unit size makes an iteration whose pairs differ only by the reward's
         small shaping terms (every rollout inserts) step as far as one where half of them fail: late in
         a gear run that walked the lateral stiffness down by 2x (towards less torque) until rollouts
         stalled on the shaft again. With a running scale such iterations take small steps."""
-        scale = self.running_scale(raw)
-        return np.asarray(raw, dtype=np.float64) / scale if scale > 0.0 else np.asarray(raw, dtype=np.float64)
-
-    def running_scale(self, raw: np.ndarray) -> float:
-        """Add this iteration's pair RMS of ``raw`` (pair advantages) and return the mean so far (0: none)."""
         rms = pair_rms(raw)
         if rms > 0.0:
             self.adv_rms_sum += rms

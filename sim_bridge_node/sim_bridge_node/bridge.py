@@ -69,7 +69,6 @@ class SimBridge:
         self._command_sim_time = 0.0  # sim time (s) when the last command was accepted
         self.hold_delay = float("nan")  # sim s the last command was applied before the latest timeout hold
         self._hold_anchor: np.ndarray | None = None  # q where the current safe hold began
-        self._hold_gravity = np.zeros(env.nu)  # the gravity part of the last hold torque
         self.torque = np.zeros(env.nu)  # torque applied in the last step (Nm), gravity included
         # what ``effort`` reports: the applied torque, less the gravity the driver added on its own with
         # driver_gravity_compensation (as Franka's driver reports it), so a controller that seeds its rate
@@ -117,12 +116,12 @@ class SimBridge:
         mujoco.mj_rne(m, d, 0, self._rne)
         return self._rne[self._vadr].copy()
 
-    def hold_torque(self) -> np.ndarray:
+    def hold_torque(self, gravity: np.ndarray | None = None) -> np.ndarray:
         """Safe hold of the driver: gravity compensation + joint damping + a joint spring
-        (``hold_stiffness``) to the position where this hold began (its anchor)."""
+        (``hold_stiffness``) to the position where this hold began (its anchor). ``gravity``: this
+        state's gravity torque, if the caller has it already."""
         cfg, env = self.config, self.env
-        self._hold_gravity = self.gravity()
-        tau = self._hold_gravity - cfg.hold_damping * env.dq
+        tau = (self.gravity() if gravity is None else gravity) - cfg.hold_damping * env.dq
         if cfg.hold_stiffness > 0.0:
             q = env.q
             if self._hold_anchor is None:
@@ -278,8 +277,8 @@ class SimBridge:
             self.hold_delay = self.sim_time - self._command_sim_time
         if stale:
             self.hold_steps += 1
-            hold = self.hold_torque()  # gravity included: with driver_gravity_compensation, not the command's part
-            self._apply(hold, self._hold_gravity if self.config.driver_gravity_compensation else None)
+            g = self.gravity()  # in the hold; with driver_gravity_compensation not the command's part
+            self._apply(self.hold_torque(g), g if self.config.driver_gravity_compensation else None)
         else:
             self._hold_anchor = None  # the next hold anchors where it begins
             self._apply_command()
