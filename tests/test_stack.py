@@ -68,9 +68,9 @@ def test_stack_runs_an_iteration_and_leaves_a_complete_run_folder(tmp_path):
     run = tmp_path / "run"
     domain = allocate_domain_id()
     learner_args = ["-p", "learner_node:rollouts_per_iter:=2", "-p", "learner_node:eval_episodes:=1",
-                    "-p", "episode_seconds:=0.5"]
+                    "-p", "learner_node:eval_every:=1", "-p", "episode_seconds:=0.5"]
     cmd = [sys.executable, "-m", "nf_bringup.stack", "--config", str(REPO / "config" / "gear.yaml"),
-           "--iterations", "1", "--out", str(run), "--domain-id", str(domain),
+           "--iterations", "2", "--out", str(run), "--domain-id", str(domain),
            *[f"--learner-arg={a}" for a in learner_args]]
     done = subprocess.run(cmd, env=ros_env(domain), capture_output=True, text=True, timeout=400, cwd=tmp_path)
     out = done.stdout + done.stderr
@@ -80,7 +80,7 @@ def test_stack_runs_an_iteration_and_leaves_a_complete_run_folder(tmp_path):
         assert f"[{name}" in out, name
         assert (run / "logs" / f"{name}.log").stat().st_size > 0
     metrics = json.loads((run / "learner" / "metrics.json").read_text())
-    assert [r["iteration"] for r in metrics] == [1]
+    assert [r["iteration"] for r in metrics] == [1, 2]
     assert (run / "learner" / "checkpoint.pt").exists()
     assert (run / "learning_curves.png").stat().st_size > 10_000
     assert (run / "final_policy.gif").stat().st_size > 10_000
@@ -89,9 +89,14 @@ def test_stack_runs_an_iteration_and_leaves_a_complete_run_folder(tmp_path):
     # the prior evaluated on the same held-out start as the learned controller, both in the summary
     prior = json.loads((run / "learner" / "evaluation_prior.json").read_text())
     final = json.loads((run / "learner" / "evaluation.json").read_text())
-    assert (prior["iteration"], final["iteration"]) == (0, 1) and prior["episodes"] == final["episodes"] == 1
+    assert (prior["iteration"], final["iteration"]) == (0, 2) and prior["episodes"] == final["episodes"] == 1
     assert [e["start_seed"] for e in prior["per_episode"]] == [e["start_seed"] for e in final["per_episode"]]
-    assert "| the prior (before iteration 1) | 1 |" in summary and "| learned (after iteration 1) | 1 |" in summary
+    assert "| the prior (before iteration 1) | 1 |" in summary and "| learned (after iteration 2) | 1 |" in summary
+    # eval_every 1 over ROS: after iteration 1 between the iterations, after 2 the final evaluation itself
+    at1 = json.loads((run / "learner" / "evaluations" / "iteration_0001.json").read_text())
+    assert at1["iteration"] == 1 and at1["over_ros"]
+    assert at1["per_episode"][0]["start_seed"] == final["per_episode"][0]["start_seed"]
+    assert [r["eval_final_distance"] for r in metrics] == [at1["final_distance_mean"], final["final_distance_mean"]]
     # the update takes milliseconds: in seconds with one decimal it read 0.0 for every iteration
     assert f"| {1e3 * metrics[0]['update_seconds']:.0f} |" in summary and "update (ms)" in summary
     # the bag holds the run: closed cleanly, the two rollouts streamed by the controller, the policy
@@ -101,7 +106,7 @@ def test_stack_runs_an_iteration_and_leaves_a_complete_run_folder(tmp_path):
         assert health.counts[topic] > 0, (topic, dict(health.counts))
     # every episode, the first included (the learner starts only once the recorder subscribes), complete
     episodes = reader.rollout_chunks(run / "bag")
-    # the prior's evaluation, 2 training rollouts, the final evaluation
-    assert len(episodes) == 4, {k: [(c.seq, c.final) for c in v] for k, v in episodes.items()}
-    assert sorted(episodes) == list(range(min(episodes), min(episodes) + 4))
+    # the prior's evaluation, 2 training rollouts, the evaluation after iteration 1, 2 rollouts, the final one
+    assert len(episodes) == 7, {k: [(c.seq, c.final) for c in v] for k, v in episodes.items()}
+    assert sorted(episodes) == list(range(min(episodes), min(episodes) + 7))
     assert all(v[-1].final and len(v) == v[-1].n_chunks for v in episodes.values())

@@ -346,3 +346,56 @@ def test_fine_tuning_updates_stop_at_init_target_kl(tmp_path):
     assert TrainConfig.from_sources(GEAR_LEARN, {}).update_target_kl == 0.0
     with pytest.raises(ValueError, match="init_target_kl"):
         TrainConfig.from_sources(GEAR_LEARN, {"init_target_kl": -1.0})
+
+
+def test_eval_every_evaluates_the_deterministic_controller_between_iterations_without_changing_training(tmp_path):
+    """``eval_every=2``: after iterations 2 and 4 the deterministic controller runs on the held-out starts
+    (metrics columns, evaluations/iteration_NNNN.json, markers on the curves); the training is the one
+    without it to the bit, and the final evaluation is the last periodic one, not a second run."""
+    sets = [f"--set={k}={v}" for k, v in TINY.items() if k not in ("task", "iterations")]
+    cli = ["--task", "block", "--iterations", "4", "--no-progress", "--no-prior-eval", *sets]
+    assert train_main([*cli, "--set", "eval_every=2", "--out", str(tmp_path / "every")]) == 0
+    assert train_main([*cli, "--out", str(tmp_path / "plain")]) == 0
+    every, plain = (json.loads((tmp_path / r / "metrics.json").read_text()) for r in ("every", "plain"))
+    eval_cols = ("eval_return", "eval_success", "eval_final_distance")
+    assert [{k: v for k, v in metrics_without_timing(r).items() if k not in eval_cols} for r in every] == [
+        metrics_without_timing(r) for r in plain]
+    assert all(k not in plain[0] for k in eval_cols)
+    evaluated = [int(r["iteration"]) for r in every if math.isfinite(r["eval_success"])]
+    assert evaluated == [2, 4]
+    files = sorted(p.name for p in (tmp_path / "every" / "evaluations").iterdir())
+    assert files == ["iteration_0002.json", "iteration_0004.json"]
+    at2 = json.loads((tmp_path / "every" / "evaluations" / files[0]).read_text())
+    assert at2["iteration"] == 2 and at2["episodes"] == TINY["eval_episodes"]
+    assert every[1]["eval_final_distance"] == pytest.approx(at2["final_distance_mean"])
+    final = json.loads((tmp_path / "every" / EVALUATION_FILE).read_text())
+    assert final == json.loads((tmp_path / "every" / "evaluations" / files[1]).read_text())
+    assert final["per_episode"] == json.loads((tmp_path / "plain" / EVALUATION_FILE).read_text())["per_episode"]
+    rows = list(csv.DictReader((tmp_path / "every" / "metrics.csv").open()))
+    assert rows[0]["eval_success"] == "nan" and rows[1]["eval_success"] != "nan"
+
+
+def test_periodic_evaluations_give_the_mean_over_seeds_where_they_ran():
+    from learner_node.analysis.plots import periodic_evaluations
+
+    nan = math.nan
+    a = [{"iteration": 1, "eval_success": nan}, {"iteration": 2, "eval_success": 0.5}]
+    b = [{"iteration": 1, "eval_success": nan}, {"iteration": 2, "eval_success": 1.0}]
+    its, mean = periodic_evaluations([a, b], "success_rate")
+    assert its.tolist() == [2.0] and mean.tolist() == [0.75]
+    assert periodic_evaluations([[{"iteration": 1}]], "success_rate")[0].size == 0
+
+
+def test_fresh_removes_the_earlier_runs_results(tmp_path, caplog):
+    """``--fresh`` starts over in the same folder: the earlier run's prior and final evaluations and
+    periodic ones go, so the new run's folder (its curves, a summary) shows only its own results."""
+    sets = [f"--set={k}={v}" for k, v in TINY.items() if k not in ("task", "iterations")]
+    cli = ["--task", "block", "--iterations", "2", "--no-progress", *sets, "--out", str(tmp_path)]
+    assert train_main([*cli, "--set", "eval_every=1"]) == 0
+    assert (tmp_path / PRIOR_EVALUATION_FILE).exists() and (tmp_path / "evaluations" / "iteration_0001.json").exists()
+    with caplog.at_level(logging.INFO):
+        assert train_main([*cli, "--fresh", "--no-prior-eval", "--no-eval"]) == 0
+    assert "removed the earlier run's" in caplog.text and PRIOR_EVALUATION_FILE in caplog.text
+    assert not (tmp_path / PRIOR_EVALUATION_FILE).exists() and not (tmp_path / EVALUATION_FILE).exists()
+    assert list((tmp_path / "evaluations").glob("*.json")) == []
+    assert [r["iteration"] for r in json.loads((tmp_path / "metrics.json").read_text())] == [1.0, 2.0]

@@ -188,6 +188,12 @@ class TrainConfig:
     ``friction_coulomb`` (same stream, after it). [0, 0]: none (the default)."""
     eval_episodes: int = 10
     """Final evaluation: episodes of the deterministic controller from held-out starts (1 if start=fixed)."""
+    eval_every: int = 0
+    """Also evaluate the deterministic controller on the same held-out starts after every ``eval_every``-th
+    iteration (0: only before and after training): the metrics' ``eval_success``, ``eval_return`` and
+    ``eval_final_distance`` (NaN in the other rows), ``evaluations/iteration_NNNN.json`` and the
+    curves' markers. It draws nothing from the training's random streams; over ROS it costs
+    ``eval_episodes`` episodes of the arm each time."""
     goal: list[float] | None = None
     """The controller's x_ref and the reward's goal, m in the robot's base frame (3 values; block: x, z).
     None: the simulated task's goal (gear and peg [0.5, 0, 0.07]). On a real cell, the goal measured
@@ -283,6 +289,7 @@ class TrainConfig:
         _int_range("update_epochs", self.update_epochs, 1, 10_000)
         _int_range("minibatch_size", self.minibatch_size, 1, 10_000_000)
         _int_range("eval_episodes", self.eval_episodes, 0, 100_000)
+        _int_range("eval_every", self.eval_every, 0, 100_000)
         friction = self.friction_ranges()  # ValueError naming the range
         if friction.randomized and self.start == "fixed":
             raise ValueError("friction_coulomb / friction_viscous are drawn from each episode's start seed; with "

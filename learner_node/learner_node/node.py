@@ -567,6 +567,12 @@ class RosTraining:
             trainer.write_metrics()
             trainer.save_checkpoint(self.out_dir / CHECKPOINT)
             version = self.node.publish_policy(trainer)
+            if trainer.evaluation_due() and trainer.iteration < cfg.iterations:  # the last: the final one's
+                result = self.evaluation(version, f"evaluation after iteration {trainer.iteration}")
+                if result is not None:
+                    trainer.record_evaluation(result)
+                    trainer.write_metrics()
+                    trainer.save_checkpoint(self.out_dir / CHECKPOINT)
             LOG.info("iteration %3d/%d  return %9.1f  success %.2f  final distance %.4f m  sigma %.2f  "
                      "rollouts %.1f s  update %.1f s", trainer.iteration, cfg.iterations, row["return_mean"],
                      row["success_rate"], row["final_distance_mean"], row["sigma"], row["rollout_seconds"],
@@ -578,16 +584,31 @@ class RosTraining:
 
     def evaluate(self, version: int, file_name: str = EVALUATION_FILE, what: str = "evaluation") -> int:
         """The deterministic controller (policy ``version``) from the held-out starts, over ROS on every
-        arm; writes ``file_name`` (evaluation.json: after training; evaluation_prior.json: before it)."""
+        arm; writes ``file_name`` (evaluation.json: after training; evaluation_prior.json: before it).
+        0: done (or nothing to evaluate), 1: no episode completed."""
+        if (self.cfg.eval_episodes if self.cfg.start != "fixed" else min(self.cfg.eval_episodes, 1)) == 0:
+            return 0
+        out = self.evaluation(version, what)
+        if out is None:
+            return 1
+        if file_name == EVALUATION_FILE and self.trainer.evaluation_due():
+            self.trainer.record_evaluation(out)  # eval_every's of the last iteration
+            self.trainer.write_metrics()
+        _atomic_write(self.out_dir / file_name, json.dumps(out, indent=1, default=_json_float))
+        return 0
+
+    def evaluation(self, version: int, what: str) -> dict[str, Any] | None:
+        """Run the held-out evaluation episodes of policy ``version`` over ROS and summarise them (None: no
+        episode completed or nothing to evaluate)."""
         n = self.cfg.eval_episodes if self.cfg.start != "fixed" else min(self.cfg.eval_episodes, 1)
         if n == 0:
-            return 0
+            return None
         jobs = [EpisodeJob(self.trainer.runner.start_seed(EVAL_SEED_BASE + k), 0, True, version=version)
                 for k in range(n)]
         queue = self.run_batch(jobs, what)
         recs = [r for r in queue.results() if r is not None]
         if not recs:
-            return 1
+            return None
         out: dict[str, Any] = {"episodes": len(recs), "iteration": self.trainer.iteration, "over_ros": True}
         if self.trainer.started_from is not None:
             out["started_from"] = self.trainer.started_from
@@ -595,10 +616,9 @@ class RosTraining:
         out["per_episode"] = [{"start_seed": r.start_seed, "return": r.episode_return, "success": r.final_success,
                                "final_distance": r.final_distance, "max_depth": float(r.depth.max()),
                                **episode_friction(r)} for r in recs]
-        _atomic_write(self.out_dir / file_name, json.dumps(out, indent=1, default=_json_float))
         LOG.info("%s (deterministic, %d held-out starts): success %.2f, final distance %.4f m", what,
                  len(recs), out["success_rate"], out["final_distance_mean"])
-        return 0
+        return out
 
 
 def _work(node: LearnerNode, stop: threading.Event) -> int:

@@ -62,8 +62,12 @@ EVAL_SEED_BASE = 1_000_000_000  # held-out evaluation starts: seeds >= this; tra
 # (with friction_coulomb / friction_viscous set, they draw their joint friction from the same ranges)
 # settings that may differ between a checkpoint and the run that resumes it (init_checkpoint is
 # read only by a run's start: a resumed run continues from its own checkpoint whatever it says)
-RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes", "init_checkpoint", "init_sigma_scale",
-                               "init_target_kl"})
+RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes", "eval_every", "init_checkpoint",
+                               "init_sigma_scale", "init_target_kl"})
+PERIODIC_EVALUATIONS = "evaluations"  # run-folder subdirectory of the eval_every evaluations
+# metrics columns of a periodic evaluation <- the evaluation's own keys
+EVAL_COLUMNS = {"eval_return": "return_mean", "eval_success": "success_rate",
+                "eval_final_distance": "final_distance_mean"}
 # the settings that shape a policy's parameters, per policy type (with the task's dimension)
 ARCHITECTURE = {"nf": ("n_flow", "n_hidden", "activation"), "mlp": ("mlp_hidden", "mlp_activation")}
 # settings only the NF policy reads: an MLP run's checkpoint resumes whatever they are
@@ -204,6 +208,7 @@ class Trainer:
         self.rng = np.random.default_rng(cfg.seed)
         self.iteration = 0  # completed iterations
         self.history: list[dict[str, float]] = []
+        self._evaluated: tuple[int, dict[str, Any]] | None = None  # the last periodic evaluation
 
     def _explore_params(self) -> None:
         """The parameter exploration around the policy as it is now, and its optimiser."""
@@ -328,8 +333,30 @@ class Trainer:
         row["rollout_seconds"] = rollout_seconds
         row["update_seconds"] = t2 - t1
         row["wall_seconds"] = rollout_seconds + (t2 - t1)
+        if self.cfg.eval_every > 0:  # every row has the columns, so metrics.csv keeps one header
+            row.update(dict.fromkeys(EVAL_COLUMNS, math.nan))
         self.history.append(row)
         return row
+
+    def evaluation_due(self) -> bool:
+        """Whether the iteration just completed is one of ``eval_every``'s (and evaluations are on)."""
+        every = self.cfg.eval_every
+        return every > 0 and self.cfg.eval_episodes > 0 and self.iteration > 0 and self.iteration % every == 0
+
+    def record_evaluation(self, result: dict[str, Any]) -> None:
+        """Put a periodic evaluation of the current policy into the last metrics row (``EVAL_COLUMNS``) and,
+        with an output folder, into ``evaluations/iteration_NNNN.json``."""
+        if not self.history:
+            raise ValueError("record_evaluation: no iteration to attach the evaluation to")
+        row = self.history[-1]
+        for column, key in EVAL_COLUMNS.items():
+            row[column] = float(result.get(key, math.nan))
+        self._evaluated = (self.iteration, result)
+        if self.out_dir is not None:
+            folder = self.out_dir / PERIODIC_EVALUATIONS
+            folder.mkdir(parents=True, exist_ok=True)
+            _atomic_write(folder / f"iteration_{self.iteration:04d}.json",
+                          json.dumps(result, indent=1, default=_json_float))
 
     def gain_metrics(self) -> dict[str, float]:
         """NF policy with learned gains or parameter exploration: S and D diagonals (after the update) and
@@ -542,9 +569,30 @@ class Trainer:
                 note += (f"; init_checkpoint {self.cfg.init_checkpoint} is not read: the run folder's own "
                          "checkpoint wins")
             return note
+        stale = self.clear_results() if fresh else []
+        note = f"--fresh: removed the earlier run's {', '.join(stale)}" if stale else None
         if self.cfg.init_checkpoint:
-            return self.init_from_checkpoint(self.cfg.init_checkpoint)
-        return None
+            started = self.init_from_checkpoint(self.cfg.init_checkpoint)
+            return f"{note}; {started}" if note else started
+        return note
+
+    def clear_results(self) -> list[str]:
+        """Remove an earlier run's results from the output folder (metrics, evaluations, checkpoint), so a
+        fresh run's folder holds only its own (its evaluations would otherwise sit beside the old ones:
+        an old prior's evaluation is not redone). Returns the names removed."""
+        if self.out_dir is None or not self.out_dir.is_dir():
+            return []
+        removed = []
+        for name in (CHECKPOINT, "metrics.csv", "metrics.json", PRIOR_EVALUATION_FILE, EVALUATION_FILE):
+            if (self.out_dir / name).exists():
+                (self.out_dir / name).unlink()
+                removed.append(name)
+        folder = self.out_dir / PERIODIC_EVALUATIONS
+        if folder.is_dir():
+            for path in folder.glob("iteration_*.json"):
+                path.unlink()
+            removed.append(f"{PERIODIC_EVALUATIONS}/")
+        return removed
 
     # ------------------------------------------------------------------ the run
     def write_metrics(self) -> None:
@@ -582,6 +630,12 @@ class Trainer:
         try:
             while self.iteration < self.cfg.iterations:
                 row = self.train_iteration()
+                if self.evaluation_due():
+                    result = self.evaluate()
+                    self.record_evaluation(result)
+                    LOG.info("iteration %d: deterministic on %d held-out starts: success %.2f, final distance "
+                             "%.4f m", self.iteration, result["episodes"], result["success_rate"],
+                             result["final_distance_mean"])
                 if self.out_dir is not None:
                     self.write_metrics()
                     self.save_checkpoint(self.out_dir / CHECKPOINT)
@@ -593,7 +647,8 @@ class Trainer:
             bar.close()
         if not evaluate or self.cfg.eval_episodes == 0:
             return None
-        result = self.evaluate()
+        result = self.evaluate() if self._evaluated is None or self._evaluated[0] != self.iteration \
+            else self._evaluated[1]  # eval_every's of the last iteration: the same policy and starts
         LOG.info("evaluation (deterministic, %d held-out starts): success %.2f, return %.1f, final distance %.4f m",
                  result["episodes"], result["success_rate"], result["return_mean"], result["final_distance_mean"])
         if self.out_dir is not None:

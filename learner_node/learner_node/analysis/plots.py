@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -44,6 +45,24 @@ def curve_stats(histories: Sequence[Sequence[Mapping[str, float]]], key: str) ->
     return iters, values.mean(axis=0), values.min(axis=0), values.max(axis=0)
 
 
+# a curve's column -> the column of the periodic deterministic evaluations (TrainConfig.eval_every)
+EVAL_OF = {"return_mean": "eval_return", "success_rate": "eval_success", "final_distance_mean": "eval_final_distance"}
+
+
+def periodic_evaluations(histories: Sequence[Sequence[Mapping[str, float]]], key: str) -> tuple[np.ndarray, np.ndarray]:
+    """(iterations, mean over seeds) of the periodic evaluations' ``key`` column (``EVAL_OF``): the
+    iterations at which every seed that reached them was evaluated; empty if none was."""
+    column = EVAL_OF.get(key)
+    points: dict[float, list[float]] = {}
+    for h in histories:
+        for row in h:
+            value = float(row.get(column, math.nan)) if column else math.nan
+            if math.isfinite(value):
+                points.setdefault(float(row["iteration"]), []).append(value)
+    its = sorted(points)
+    return np.array(its), np.array([np.mean(points[i]) for i in its])
+
+
 def plot_learning_curve_groups(groups: Mapping[str, Sequence[Sequence[Mapping[str, float]]]], path: str | Path,
                                title: str = "", evaluations: Sequence[tuple[str, float, Mapping[str, float]]] = ()
                                ) -> Path:
@@ -65,6 +84,10 @@ def plot_learning_curve_groups(groups: Mapping[str, Sequence[Sequence[Mapping[st
             ax.plot(it, mean, color=color, linestyle=style, label=f"{label} ({seeds} seed{'s' if seeds != 1 else ''})")
             if seeds > 1:
                 ax.fill_between(it, lo, hi, color=color, alpha=0.2, linewidth=0)
+            ev_it, ev_mean = periodic_evaluations(histories, key)
+            if ev_it.size:
+                ax.plot(ev_it, ev_mean, linestyle="none", marker="x", markersize=7, color=color,
+                        label=f"{label}: deterministic, held-out (eval_every)")
     for (label, iteration, row), marker in zip(evaluations, ("o", "*", "s", "D"), strict=False):
         for ax, (key, _) in zip(axes, CURVE_KEYS, strict=True):
             if key in row:
