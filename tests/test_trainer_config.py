@@ -53,6 +53,7 @@ def test_task_defaults_follow_the_paper():
         ({"reward_velocity": -0.1}, "reward_velocity must be >= 0"),
         ({"start": "sometimes"}, "start must be one of"),
         ({"stiffness": 0.0}, "stiffness must be > 0"),
+        ({"eval_every": -1}, "eval_every must be in"),
     ],
 )
 def test_bad_values_give_clear_errors(overrides, message):

@@ -218,6 +218,11 @@ class TrainConfig:
     10/10 policy to 4/10 on franky-sim (approx_kl 0.5-1.6 per update; docs/measurements.md)."""
 
     @property
+    def eval_starts(self) -> int:
+        """Episodes of a held-out evaluation: ``eval_episodes``, at most 1 with fixed starts (all alike)."""
+        return min(self.eval_episodes, 1) if self.start == "fixed" else self.eval_episodes
+
+    @property
     def update_target_kl(self) -> float:
         """The ``target_kl`` the updates use: ``init_target_kl`` when fine-tuning, else ``target_kl``."""
         return self.init_target_kl if self.init_checkpoint and self.init_target_kl > 0.0 else self.target_kl

@@ -586,7 +586,7 @@ class RosTraining:
         """The deterministic controller (policy ``version``) from the held-out starts, over ROS on every
         arm; writes ``file_name`` (evaluation.json: after training; evaluation_prior.json: before it).
         0: done (or nothing to evaluate), 1: no episode completed."""
-        if (self.cfg.eval_episodes if self.cfg.start != "fixed" else min(self.cfg.eval_episodes, 1)) == 0:
+        if self.cfg.eval_starts == 0:
             return 0
         out = self.evaluation(version, what)
         if out is None:
@@ -600,7 +600,7 @@ class RosTraining:
     def evaluation(self, version: int, what: str) -> dict[str, Any] | None:
         """Run the held-out evaluation episodes of policy ``version`` over ROS and summarise them (None: no
         episode completed or nothing to evaluate)."""
-        n = self.cfg.eval_episodes if self.cfg.start != "fixed" else min(self.cfg.eval_episodes, 1)
+        n = self.cfg.eval_starts
         if n == 0:
             return None
         jobs = [EpisodeJob(self.trainer.runner.start_seed(EVAL_SEED_BASE + k), 0, True, version=version)
