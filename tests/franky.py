@@ -49,6 +49,7 @@ class DriverRig:
         self.x0 = self.tcp_arm.tcp_position(np.asarray(state.q))
         self.q = np.asarray(state.q, dtype=float).copy()  # joint positions of the last state
         self._ticks: list[tuple[np.ndarray, np.ndarray]] = []  # (torque, torque limits), one append per tick
+        self.dq_max = np.zeros(7)  # rad/s, each joint's fastest speed since it was last zeroed
         errors = (franka.FrankaException, franka.ControlException, franka.CommandException,
                   franka.NetworkException, franka.RealtimeException, franka.InvalidOperationException)
         self.driver = FrankaDriverLoop(robot, self.host, self.tcp_arm.tcp_position, config or DriverConfig(),
@@ -59,6 +60,7 @@ class DriverRig:
 
     def _record(self, q: np.ndarray, dq: np.ndarray, tau: np.ndarray, stamp_ns: int) -> None:
         self.q = q
+        np.maximum(self.dq_max, np.abs(dq), out=self.dq_max)
         self._ticks.append((tau.copy(), self.loop.controller.law.torque_limits.copy()))
 
     def torques_and_limits(self) -> tuple[np.ndarray, np.ndarray]:

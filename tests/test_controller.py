@@ -72,6 +72,32 @@ def test_joint_limit_springs_join_the_step_and_V(arm):
     assert sprung.step(q, dq) == pytest.approx(plain.step(q, dq))
 
 
+def test_posture_spring_joins_the_step_and_V_and_leaves_no_trace(arm):
+    """The reset motion's joint spring and damping (set_posture), with and without the joint-limit
+    springs, in the compiled path; off again, the step is the plain law's."""
+    q_posture = Q0 + np.array([0.05, 0.0, -0.05, 0.0, 0.0, 0.0, 0.02])
+    rng = np.random.default_rng(3)
+    q, dq = Q0 + rng.normal(0, 0.02, 7), rng.normal(0, 0.05, 7)
+    for law in (TorqueLawConfig(), TorqueLawConfig(joint_limit_stiffness=100.0)):
+        plain, sprung = _controller(arm), _controller(arm)
+        plain.set_law(law)
+        sprung.set_law(law)
+        sprung.set_posture(q_posture, 10.0, 7.0)
+        assert sprung.posture is not None and sprung.posture[1:] == (10.0, 7.0)
+        tau = sprung.step(q, dq).copy()
+        base = plain.step(q, dq).copy()
+        np.testing.assert_allclose(tau - base, 10.0 * (q_posture - q) - 7.0 * dq, atol=1e-9)
+        dV = sprung.lyapunov(q, dq) - plain.lyapunov(q, dq)
+        assert dV == pytest.approx(0.5 * 10.0 * float((q - q_posture) @ (q - q_posture)))
+        sprung.set_posture(None)
+        assert sprung.posture is None
+        sprung.reset_rate_limit()
+        plain.reset_rate_limit()
+        np.testing.assert_allclose(sprung.step(q, dq), plain.step(q, dq), atol=1e-12)
+    with pytest.raises(ValueError, match="posture must be 7"):
+        sprung.set_posture(Q0[:6], 10.0, 7.0)
+
+
 BAD_STATES = {
     "nan q": (np.r_[math.nan, Q0[1:]], np.zeros(7)),
     "inf dq": (Q0, np.r_[np.zeros(6), math.inf]),

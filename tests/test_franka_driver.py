@@ -128,3 +128,70 @@ def test_reset_motion_starts_the_episode_and_success_comes_from_kinematics(sim):
         _check_limits(rig)
     finally:
         rig.stop()
+
+
+def _self_motion(arm, q: np.ndarray, turn: float, steps: int = 400) -> np.ndarray:
+    """Joints turned along the arm's self-motion (the null space of its 6x7 Jacobian) until joint 1
+    has moved by ``turn`` rad: the TCP's pose stays where it was."""
+    q = q.copy()
+    for _ in range(steps):
+        arm.kinematics(q)
+        n = np.linalg.svd(arm.J)[2][-1]  # the Jacobian's null direction
+        q += (turn / steps) * n / n[0]
+    return q
+
+
+def test_the_reset_motion_undoes_a_self_motion_drift(sim):
+    """Issue 30: over a long learning run the task-space law let joints 1 and 3 turn 1.5 rad in a
+    self-motion until joint friction stalled the reset short of the start. The reset's posture
+    spring (to where the first reset reached the start) pulls the joints back; without it they stay
+    turned. The drift is made by the same spring, given a turned posture."""
+    rig = DriverRig(idle_mode="hold")
+    start = np.array([0.5, 0.0, 0.25])  # config/franka.yaml's start
+    config = DriverConfig(start_position=start, reset_tolerance=0.005, reset_speed=0.01, reset_settle=100,
+                          reset_timeout=30.0)  # reset gains and posture spring: the defaults (franka.yaml's)
+    config.check()
+    rig.driver.config = config
+    driver = rig.driver
+    policy = reset_policy(start, 1500.0, 100.0)  # the episodes hold the start
+    policy.version = 4
+    rig.loop.set_policy(policy)
+
+    def episode(i: int) -> None:
+        """One reset and a 0.1 s episode."""
+        spec = EpisodeSpec(episode_id=i, policy_version=4, duration=0.1, decision_period=0.01, control_period=0.001,
+                           sigma=None, noise_seed=0, x_goal=start, weights=RewardWeights(), chunk_decisions=10)
+        run = EpisodeRun(spec)
+        driver.begin_episode(0, run).result(timeout=120.0)
+        deadline = time.monotonic() + 30.0
+        while not run.done and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+    try:
+        rig.start()
+        episode(1)
+        posture = driver.posture
+        assert posture is not None and driver.resets_done == 1, driver.last_reset
+        turned = _self_motion(rig.tcp_arm, posture, 0.8)
+        assert np.linalg.norm(rig.tcp_arm.tcp_position(turned) - start) < 0.002
+        driver.posture = turned  # drift: the reset pulls the arm into the turned posture
+        episode(2)
+        assert abs(rig.q[0] - posture[0]) > 0.6, driver.last_reset
+        driver.posture = posture
+        config.reset_posture_stiffness = 0.0  # the reset without its posture spring: the drift stays
+        episode(3)
+        assert abs(rig.q[0] - posture[0]) > 0.6, driver.last_reset
+        config.reset_posture_stiffness = DriverConfig.reset_posture_stiffness
+        rig.dq_max[:] = 0.0
+        episode(4)
+        off = np.abs(rig.q - posture)
+        print(f"after the reset: {np.round(off, 3).tolist()} rad off the posture; {driver.last_reset}; "
+              f"fastest joints {np.round(rig.dq_max, 2).tolist()} rad/s")
+        assert driver.resets_done == 4 and driver.resets_failed == 0, driver.last_reset
+        assert np.all(rig.dq_max < FR3.dq_max), "a joint went faster than the FR3 may"
+        assert off.max() < 0.1, f"joints {np.round(off, 3).tolist()} rad off the first reset's posture"
+        assert rig.loop.controller.posture is None  # the episodes run without it
+        assert driver.exceptions == 0, driver.last_error
+        _check_limits(rig)
+    finally:
+        rig.stop()

@@ -160,6 +160,36 @@ def test_an_episode_whose_policy_is_not_the_goal_is_refused():
         driver.stop()
 
 
+def test_reset_motions_return_to_the_first_resets_posture():
+    """Issue 30: the first reset records where it reached the start; every later reset pulls the
+    joints back there (a joint spring in the controller only while the reset runs)."""
+    robot = FakeRobot()
+    driver, loop, _host = _rig(robot)
+    assert driver.posture is None
+    driver.start(logging.getLogger("franka-loop"))
+    try:
+        driver.begin_episode(0, _episode(loop.policy.x_ref, seconds=0.05)).result(timeout=20)
+        assert driver.resets_done == 1 and driver.posture is not None
+        np.testing.assert_allclose(driver.posture, Q0, atol=1e-3)  # the fake arm barely moves
+        assert loop.controller.posture is None, "the episode runs without the posture spring"
+        assert _wait(lambda: loop.episode is None)
+        seen = []
+        done = driver.begin_episode(0, _episode(loop.policy.x_ref, seconds=0.05))
+        while not done.done():
+            seen.append(loop.controller.posture)
+            time.sleep(0.0005)
+        done.result(timeout=20)
+        during = [p for p in seen if p is not None]
+        assert during, "the second reset ran with the posture spring"
+        np.testing.assert_allclose(during[0][0], driver.posture)
+        assert during[0][1:] == (DriverConfig.reset_posture_stiffness, DriverConfig.reset_posture_damping)
+        assert loop.controller.posture is None and "rad off" in driver.last_reset
+    finally:
+        driver.stop()
+    with pytest.raises(ValueError, match="reset_posture must be 7"):
+        _rig(FakeRobot(), reset_posture=Q0[:5])
+
+
 def test_a_restarted_session_anchors_the_hold_where_the_arm_is_now():
     """Issue 14: the safe hold brakes to its anchor. After a reflex the arm may have been moved (by
     the reflex, by a person) before torque control restarts: the new session's hold must anchor at

@@ -14,9 +14,14 @@ that latency, the loop period and the cycles the robot reports as missed.
 
 Episodes (``begin_episode``) start with a reset *motion*: the stable controller itself (identity
 flow, ``reset_stiffness``/``reset_damping``) drives the TCP to ``start_position``; when it is there
-and still (``reset_tolerance``, ``reset_speed``, ``reset_settle`` ticks) the episode starts from
+and still (``reset_tolerance``, ``reset_speed``, ``reset_settle`` ticks; the posture below within
+``reset_posture_tolerance``) the episode starts from
 the next state, with the torque rate limit in force. A reset that does not converge within
-``reset_timeout`` (robot time) fails the episode and the arm is held.
+``reset_timeout`` (robot time) fails the episode and the arm is held. The task-space law leaves the
+arm's self-motion to joint damping, so episodes can turn the posture while the TCP stays put; the
+reset motion therefore also pulls the joints to a posture (``reset_posture``, by default where the
+first reset reached the start) with a joint spring, so that every episode starts from the same
+posture and the drift cannot build up over a long run.
 
 libfranka's exceptions (reflexes, network) end torque control: the running episode is aborted,
 the error is kept for /diagnostics, and the loop waits. Without ``automatic_error_recovery`` the
@@ -60,6 +65,12 @@ class DriverConfig:
     reset_settle: int = 200  # ticks in a row within tolerance and still
     reset_stiffness: float = 1500.0  # N/m of the reset motion's spring (stiff: joint friction stops a soft
     reset_damping: float = 100.0  # N s/m   spring short by friction / stiffness)
+    # The reset motion's joint spring (Nm/rad) and damping (Nm s/rad) to reset_posture (rad; None: the
+    # joints where the first reset reached the start). A conservative potential: the reset stays stable.
+    reset_posture_stiffness: float = 20.0
+    reset_posture_damping: float = 10.0
+    reset_posture: np.ndarray | None = None
+    reset_posture_tolerance: float = 0.1  # rad, largest joint's distance to it that counts as arrived
     fixture_position: np.ndarray = field(default_factory=lambda: np.array([0.5, 0.0, 0.07]))  # mouth, base frame
     fixture_radius: float = 0.005  # m: laterally within this of the fixture axis counts as "inside"
     success_depth: float = 0.016  # m below the mouth
@@ -70,6 +81,11 @@ class DriverConfig:
     gravity_headroom: bool = True  # clamp each command to limit - |g(q)| (the robot adds g on top)
     keep_timing: bool = False  # keep every latency and period (benchmark)
 
+    @property
+    def posture_spring(self) -> bool:
+        """Whether reset motions pull the joints to a posture."""
+        return self.reset_posture_stiffness > 0.0
+
     def check(self) -> None:
         """Raise ``ValueError`` naming the first bad value."""
         for name in ("start_position", "fixture_position"):
@@ -78,10 +94,19 @@ class DriverConfig:
                 raise ValueError(f"{name} must be 3 finite values (m), got {getattr(self, name)}")
             setattr(self, name, v)
         for name in ("reset_timeout", "reset_tolerance", "reset_speed", "reset_stiffness", "reset_damping",
-                     "fixture_radius", "success_depth", "recovery_wait"):
+                     "reset_posture_tolerance", "fixture_radius", "success_depth", "recovery_wait"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"{name} must be > 0, got {value}")
+        for name in ("reset_posture_stiffness", "reset_posture_damping"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be >= 0, got {value}")
+        if self.reset_posture is not None:
+            posture = np.asarray(self.reset_posture, dtype=float)
+            if posture.ndim != 1 or not np.all(np.isfinite(posture)):
+                raise ValueError(f"reset_posture must be finite joint positions (rad), got {self.reset_posture}")
+            self.reset_posture = posture
         if self.goal is not None:
             goal = np.asarray(self.goal, dtype=float)
             if goal.shape != (3,) or not np.all(np.isfinite(goal)):
@@ -111,6 +136,7 @@ class _Reset:
         self.saved_idle = ""
         self.settled = 0
         self.error = math.inf  # m, last distance to the start
+        self.posture: np.ndarray | None = None  # joints its posture spring pulls to (None: no spring)
 
 
 class FrankaDriverLoop(DriverLoop):
@@ -130,6 +156,8 @@ class FrankaDriverLoop(DriverLoop):
                  after_tick: Callable[[np.ndarray, np.ndarray, np.ndarray, int], None] | None = None,
                  connect: Callable[[], Any] | None = None, rt_priority: int = 0) -> None:
         config.check()
+        if config.reset_posture is not None and config.reset_posture.shape != (host.loop.n,):
+            raise ValueError(f"reset_posture must be {host.loop.n} joint positions (rad), got {config.reset_posture}")
         # a robot needs a command every cycle: every state is ticked, also while the controller idles
         super().__init__(host, TickTiming(config.keep_timing), rt_priority, label="torque loop thread",
                          thread_name="franka-driver", answer_every_state=True)
@@ -158,6 +186,8 @@ class FrankaDriverLoop(DriverLoop):
         self.resets_done = 0
         self.resets_failed = 0
         self.last_reset = ""  # outcome of the latest reset, for diagnostics
+        # the reset motion's posture (rad): configured, or where the first reset reached the start
+        self.posture = None if config.reset_posture is None else config.reset_posture.copy()
         # the current session's (driver thread): libfranka's motion handle, the last state read
         self._control: Any = None
         self._rebase = False
@@ -197,6 +227,9 @@ class FrankaDriverLoop(DriverLoop):
             ctrl = loop.controller
             reset.saved_evaluator, reset.saved_idle = ctrl.evaluator, loop.config.idle_mode
             ctrl.set_evaluator(reset.evaluator)
+            if self.posture is not None and self.config.posture_spring:  # not the first reset (no posture yet)
+                reset.posture = self.posture.copy()
+                ctrl.set_posture(reset.posture, self.config.reset_posture_stiffness, self.config.reset_posture_damping)
             loop.config.idle_mode = "policy"
             self._reset = reset
 
@@ -211,6 +244,7 @@ class FrankaDriverLoop(DriverLoop):
         ctrl = loop.controller
         if ctrl.evaluator is reset.evaluator:
             ctrl.set_evaluator(reset.saved_evaluator)
+        ctrl.set_posture(None)  # the episode's law has no posture term
         loop.config.idle_mode = reset.saved_idle
         if not problem and reset.future.cancelled():
             problem = "canceled"
@@ -219,7 +253,10 @@ class FrankaDriverLoop(DriverLoop):
                 self.host.start_episode(reset.run, self.host.last_stamp_ns + 1, world_was_reset=False)
             except ValueError as exc:
                 problem = str(exc)
-        self.last_reset = problem or f"reached the start ({reset.error * 1e3:.2f} mm)"
+        if not problem and self.posture is None:
+            self.posture = self._q.copy()  # the posture every later reset returns to
+        posture = "" if self.posture is None else f", posture {np.abs(self._q - self.posture).max():.3f} rad off"
+        self.last_reset = (problem or f"reached the start ({reset.error * 1e3:.2f} mm)") + posture
         if problem:
             self.resets_failed += 1
             if not reset.future.done():
@@ -244,7 +281,8 @@ class FrankaDriverLoop(DriverLoop):
             return
         reset.error = float(np.linalg.norm(x - self.config.start_position))
         speed = float(np.linalg.norm(ctrl.xdot))
-        if reset.error < self.config.reset_tolerance and speed < self.config.reset_speed:
+        posture = reset.posture is None or np.abs(self._q - reset.posture).max() < self.config.reset_posture_tolerance
+        if reset.error < self.config.reset_tolerance and speed < self.config.reset_speed and posture:
             reset.settled += 1
             if reset.settled >= self.config.reset_settle:
                 self._end_reset("")

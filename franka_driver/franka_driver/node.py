@@ -65,6 +65,11 @@ PARAMETERS = {
     "reset_settle": (_D.reset_settle, "ticks in a row arrived and still before the episode starts"),
     "reset_stiffness": (_D.reset_stiffness, "N/m, the reset motion's spring (identity flow)"),
     "reset_damping": (_D.reset_damping, "N s/m, the reset motion's damping"),
+    "reset_posture_stiffness": (_D.reset_posture_stiffness,
+                                "Nm/rad, the reset motion's joint spring to reset_posture (0: none)"),
+    "reset_posture_damping": (_D.reset_posture_damping, "Nm s/rad, the reset motion's joint damping with it"),
+    "reset_posture": ([0.0], "rad, the joints the reset motion returns to ([0.0] or empty: where the first "
+                             "reset reached start_position)"),
     "automatic_error_recovery": (False, "after a libfranka error: recover and go on without a person"),
     "recovery_wait": (_D.recovery_wait, "s before an automatic recovery"),
     "gravity_headroom": (True, "clamp each command to limit - |g(q)| (the robot adds g(q) on top)"),
@@ -93,6 +98,8 @@ def driver_config(p: dict, keep_timing: bool = False) -> DriverConfig:
         fixture_radius=p["fixture_radius"], success_depth=p["success_depth"], reset_timeout=p["reset_timeout"],
         reset_tolerance=p["reset_tolerance"], reset_speed=p["reset_speed"], reset_settle=p["reset_settle"],
         reset_stiffness=p["reset_stiffness"], reset_damping=p["reset_damping"],
+        reset_posture_stiffness=p["reset_posture_stiffness"], reset_posture_damping=p["reset_posture_damping"],
+        reset_posture=np.asarray(p["reset_posture"], float) if len(p["reset_posture"]) > 1 else None,
         automatic_error_recovery=p["automatic_error_recovery"], recovery_wait=p["recovery_wait"],
         gravity_headroom=p["gravity_headroom"], keep_timing=keep_timing,
         goal=np.asarray(p["goal"], float) if len(p["goal"]) == 3 else None, goal_tolerance=p["goal_tolerance"])
@@ -192,7 +199,9 @@ class FrankaDriverNode(Node):
             f"deadline {loop.config.deadline * 1e3:g} ms x "
             f"{loop.config.max_consecutive_misses}, joint ranges {np.round(loop.q_min, 3).tolist()} .. "
             f"{np.round(loop.q_max, 3).tolist()} rad, reset {self.config.reset_stiffness:g} N/m / "
-            f"{self.config.reset_damping:g} N s/m to {self.config.start_position.tolist()} within "
+            f"{self.config.reset_damping:g} N s/m to {self.config.start_position.tolist()}, posture spring "
+            f"{self.config.reset_posture_stiffness:g} Nm/rad / {self.config.reset_posture_damping:g} Nm s/rad to "
+            f"{'the first reset' if self.config.reset_posture is None else self.config.reset_posture.tolist()}, within "
             f"{self.config.reset_timeout:g} s, fixture {self.config.fixture_position.tolist()}, goal "
             f"{'any' if self.config.goal is None else self.config.goal.tolist()}, "
             f"automatic_error_recovery {self.config.automatic_error_recovery}")

@@ -17,8 +17,10 @@ from .serial_chain import chain_kinematics
 from .torque_law import (
     NOT_FINITE,
     TorqueLawConfig,
+    add_posture_torque,
     joint_limit_potential,
     joint_limit_torque,
+    posture_potential,
     rotational_potential,
     safe_hold_torque,
     task_space_torque,
@@ -99,10 +101,11 @@ _STATE_FAULT = -100  # _flow_tick: _STATE_FAULT - code for an unusable state (co
 
 @njit(cache=True)
 def _flow_tick(q, dq, noise, q_sane, joint_rot, joint_pos, axis, mass, com, tcp_rot, tcp_pos, gravity, o_rot, o_pos,
-               J, x, R, g, wp, layout, code, consts, work, gains, R_ref, limits, q_lo, q_hi, tau_prev, xdot, u,
-               tau, tau_joint):
+               J, x, R, g, wp, layout, code, consts, work, gains, R_ref, limits, q_lo, q_hi, q_posture, tau_prev, xdot,
+               u, tau, tau_joint):
     """``FlowController.step`` for a usable state in one compiled call: state check, the arm's
     kinematics (``chain_kinematics`` into J, x, R, g), the joint-limit springs (stiffness gains[5]),
+    the posture spring to ``q_posture`` (stiffness gains[8], damping gains[9]; off at 0),
     ``_flow_step``, and tau_prev = tau. Returns the torque law's flags, _FLOW_FAILED, or
     _STATE_FAULT - code when (q, dq) is unusable (nothing written)."""
     fault = _state_fault(q, dq, q_sane, np.inf)
@@ -111,6 +114,10 @@ def _flow_tick(q, dq, noise, q_sane, joint_rot, joint_pos, axis, mass, com, tcp_
     chain_kinematics(q, joint_rot, joint_pos, axis, mass, com, tcp_rot, tcp_pos, gravity, o_rot, o_pos, J, x, R, g)
     if gains[5] > 0.0:
         joint_limit_torque(q, q_lo, q_hi, gains[5], tau_joint)
+    elif gains[8] > 0.0:
+        tau_joint[:] = 0.0
+    if gains[8] > 0.0:
+        add_posture_torque(q, dq, q_posture, gains[8], gains[9], tau_joint)
     flags = _flow_step(J, R, g, x, dq, noise, wp, layout, code, consts, work, gains, R_ref, limits, tau_prev, xdot,
                        u, tau, tau_joint)
     if flags != _FLOW_FAILED:
@@ -176,7 +183,9 @@ class FlowController:
         self._g_last = np.zeros(n)
         self._dq_zero = np.zeros(n)
         self._no_noise = np.zeros(3)
-        self.tau_joint = np.zeros(n)  # joint-limit springs' torque of the last step, Nm
+        self.tau_joint = np.zeros(n)  # joint-limit and posture springs' torque of the last step, Nm
+        self.q_posture = np.zeros(n)  # joint position the posture spring pulls to (set_posture), rad
+        self._posture = (0.0, 0.0)  # posture spring's stiffness (Nm/rad) and damping (Nm s/rad); 0: off
         self._q_anchor = np.zeros(n)  # joint position the safe hold's spring pulls to, rad
         self._anchored = False  # False: the next hold with a usable q anchors there
         self._scratch = [np.zeros(n), np.zeros(3), np.zeros(3), np.zeros(n), np.zeros(n)]  # warm(): outputs
@@ -197,10 +206,36 @@ class FlowController:
     def set_law(self, law: TorqueLawConfig) -> None:
         """Set gains and limits of the torque law; call only between episodes."""
         self.law = law
-        self.tau_joint[:] = 0.0  # recomputed each step while the joint-limit springs are on
+        self.tau_joint[:] = 0.0  # recomputed each step while a joint spring is on
         self._anchored = False  # the next hold anchors where it begins, under the new law
         self._gains = np.array([law.k_rot, law.d_rot, law.joint_damping, float(law.gravity_compensation),
-                                law.max_step, law.joint_limit_stiffness, law.hold_damping, law.hold_stiffness])
+                                law.max_step, law.joint_limit_stiffness, law.hold_damping, law.hold_stiffness,
+                                *self._posture])
+
+    def set_posture(self, q_posture: np.ndarray | None, stiffness: float = 0.0, damping: float = 0.0) -> None:
+        """Add a joint spring (``stiffness``, Nm/rad) to ``q_posture`` and joint damping (``damping``,
+        Nm s/rad) to the law, or remove them (``None``). The spring's energy joins V, so the law stays
+        provably stable; it moves the equilibrium unless the posture is one where the task-space
+        springs rest (a driver's reset motion uses the posture it reached the start in). Call only
+        between steps, on the thread that steps."""
+        if q_posture is None or stiffness <= 0.0:
+            self._posture = (0.0, 0.0)
+        else:
+            q_posture = np.asarray(q_posture, dtype=np.float64)
+            if q_posture.shape != (self.n,) or not np.all(np.isfinite(q_posture)):
+                raise ValueError(f"posture must be {self.n} finite joint positions, got {q_posture}")
+            if not (np.isfinite(stiffness) and np.isfinite(damping) and damping >= 0.0):
+                raise ValueError(f"posture stiffness and damping must be finite, damping >= 0: {stiffness}, {damping}")
+            self.q_posture[:] = q_posture
+            self._posture = (float(stiffness), float(damping))
+        self._gains[8:10] = self._posture
+        self.tau_joint[:] = 0.0  # recomputed each step while a joint spring is on
+
+    @property
+    def posture(self) -> tuple[np.ndarray, float, float] | None:
+        """(posture, stiffness, damping) of the posture spring, or None while it is off."""
+        k, d = self._posture
+        return (self.q_posture.copy(), k, d) if k > 0.0 else None
 
     def clear_fault(self) -> None:
         """Re-arm after a fault (the caller has made sure the cause is gone). The next hold anchors
@@ -237,7 +272,7 @@ class FlowController:
         if self._kernel_args is not None and arm.chain is not None:  # one compiled call
             flags = _flow_tick(q, dq, noise, _Q_SANE, *arm.chain_args, arm.J, arm.x, arm.R, arm.g, *self._kernel_args,
                                self._gains, law.rotation_ref, law.torque_limits, law.q_soft_min, law.q_soft_max,
-                               self.tau_prev, self.xdot, self.u, self.tau, self.tau_joint)
+                               self.q_posture, self.tau_prev, self.xdot, self.u, self.tau, self.tau_joint)
             if flags < _FLOW_FAILED:
                 return self._hold(q, dq, _FAULTS[_STATE_FAULT - flags])
             self._anchored = False  # the flow ran: a hold after this step anchors where it begins
@@ -256,6 +291,10 @@ class FlowController:
         self._g_last = arm.g  # last valid gravity torque, kept for a hold on a bad state
         if law.joint_limit_stiffness > 0.0:
             joint_limit_torque(q, law.q_soft_min, law.q_soft_max, law.joint_limit_stiffness, self.tau_joint)
+        elif self._posture[0] > 0.0:
+            self.tau_joint[:] = 0.0
+        if self._posture[0] > 0.0:
+            add_posture_torque(q, dq, self.q_posture, *self._posture, self.tau_joint)
         if self._kernel_args is not None:
             self.flags = _flow_step(arm.J, arm.R, arm.g, arm.x, dq, noise, *self._kernel_args, self._gains,
                                     law.rotation_ref, law.torque_limits, self.tau_prev, self.xdot, self.u, self.tau,
@@ -294,8 +333,8 @@ class FlowController:
         tau_joint[:] = self.tau_joint
         if arm.chain is not None:  # the same compiled call as step's
             _flow_tick(q, dq, self._no_noise, _Q_SANE, *arm.chain_args, arm.J, arm.x, arm.R, arm.g, *args, self._gains,
-                       law.rotation_ref, law.torque_limits, law.q_soft_min, law.q_soft_max, tau_prev, xdot, u, tau,
-                       tau_joint)
+                       law.rotation_ref, law.torque_limits, law.q_soft_min, law.q_soft_max, self.q_posture, tau_prev,
+                       xdot, u, tau, tau_joint)
             return
         arm.kinematics(q)
         _flow_step(arm.J, arm.R, arm.g, arm.x, dq, self._no_noise, *args, self._gains, law.rotation_ref,
@@ -355,12 +394,14 @@ class FlowController:
     # -- energy ----------------------------------------------------------------------------
     def lyapunov(self, q: np.ndarray, dq: np.ndarray) -> float:
         """V(q, dq) = flow potential + orientation spring energy + joint-limit spring energy +
-        kinetic energy, J."""
+        posture spring energy (while on) + kinetic energy, J."""
         arm = self.arm
         arm.update(q, dq)
+        q = np.asarray(q, dtype=np.float64)
         return (
             self.evaluator.potential(arm.x)
             + rotational_potential(arm.R, self.law.rotation_ref, self.law.k_rot)
-            + joint_limit_potential(np.asarray(q, dtype=np.float64), self.law)
+            + joint_limit_potential(q, self.law)
+            + posture_potential(q, self.q_posture, self._posture[0])
             + arm.kinetic_energy(q, dq)
         )

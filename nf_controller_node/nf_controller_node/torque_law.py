@@ -140,6 +140,21 @@ def joint_limit_torque(q: np.ndarray, q_lo: np.ndarray, q_hi: np.ndarray, k: flo
         out[i] = v
 
 
+@njit(cache=True)
+def add_posture_torque(q: np.ndarray, dq: np.ndarray, q_posture: np.ndarray, stiffness: float, damping: float,
+                       out: np.ndarray) -> None:
+    """out += stiffness (q_posture - q) - damping dq: a joint spring to a posture and its damping.
+    The spring is conservative (energy ``posture_potential``), the damping dissipates."""
+    for i in range(q.shape[0]):
+        out[i] += stiffness * (q_posture[i] - q[i]) - damping * dq[i]
+
+
+def posture_potential(q: np.ndarray, q_posture: np.ndarray, stiffness: float) -> float:
+    """Energy (J) of the posture spring of ``add_posture_torque``."""
+    d = np.asarray(q, dtype=np.float64) - q_posture
+    return 0.5 * stiffness * float(d @ d)
+
+
 def joint_limit_potential(q: np.ndarray, law: TorqueLawConfig) -> float:
     """Energy (J) of the joint-limit springs whose torque is ``joint_limit_torque``."""
     below = np.minimum(q - law.q_soft_min, 0.0)
