@@ -76,6 +76,9 @@ def bench_architecture(arch: FlowArchitecture, calls: int, autograd_calls: int, 
         ctrl.step(qs[i & mask], dqs[i & mask])
 
     fast_us = _time(fast, calls, warmup=2000)
+    ctrl.set_posture(Q_HOME, 20.0, 10.0)  # a Franka reset motion's step: the posture spring on
+    posture_us = _time(fast, calls, warmup=2000)
+    ctrl.set_posture(None)
     if ctrl.fault:
         raise RuntimeError(f"controller faulted during the benchmark: {ctrl.fault}")
 
@@ -114,6 +117,7 @@ def bench_architecture(arch: FlowArchitecture, calls: int, autograd_calls: int, 
     return {
         "arch": {"dim": arch.dim, "n_flow": arch.n_flow, "n_hidden": arch.n_hidden, "activation": arch.activation},
         "compiled_step": fast_stats,
+        "compiled_step_posture_spring": _stats(posture_us),
         "autograd_step": slow_stats,
         "speedup_median": slow_stats["median_us"] / fast_stats["median_us"],
         "torque_difference_nm": agree,
