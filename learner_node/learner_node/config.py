@@ -25,7 +25,7 @@ from nf_core.flow_spec import ACTIVATIONS, FLOW_INITS
 from nf_core.friction import FrictionRanges
 from nf_core.reward import DEFAULT_WEIGHTS
 
-TASKS = ("gear", "peg", "block")
+TASKS = ("gear", "peg", "block", "gear_clamp")
 POLICIES = ("nf", "mlp")
 MLP_ACTIVATIONS = ("tanh", "gelu")
 BASELINES = ("linear", "value")
@@ -45,6 +45,9 @@ PHYSICS_DT = 0.001  # s, the simulator's (and controller's) step
 TASK_DEFAULTS: dict[str, dict[str, float | int]] = {
     "gear": {"episode_seconds": 5.0, "sigma_init": 5.0, "n_flow": 1, "n_hidden": 16, "stiffness": 4.0, "damping": 1.0},
     "peg": {"episode_seconds": 5.0, "sigma_init": 1.0, "n_flow": 2, "n_hidden": 16, "stiffness": 1.0, "damping": 1.0},
+    # the gear task with a clamp across the approach (no paper values: the gear's)
+    "gear_clamp": {"episode_seconds": 5.0, "sigma_init": 5.0, "n_flow": 1, "n_hidden": 16, "stiffness": 4.0,
+                   "damping": 1.0},
     "block": {"episode_seconds": 4.0, "sigma_init": 2.0, "n_flow": 2, "n_hidden": 8, "stiffness": 1.0, "damping": 1.0},
 }
 
@@ -57,7 +60,8 @@ class TrainConfig:
     """All settings of one training run (NF-PPO or MLP-PPO on one task)."""
 
     task: str = "gear"
-    """Task: gear (main), peg (peg-in-hole) or block (2-D block insertion, no arm)."""
+    """Task: gear (main), peg (peg-in-hole), block (2-D block insertion, no arm) or gear_clamp (the gear
+    started behind a clamp it must be lifted over)."""
     policy: str = "nf"
     """Policy parameterisation: nf (stable normalizing-flow controller) or mlp (plain Gaussian MLP)."""
     sigma_init: float | None = None

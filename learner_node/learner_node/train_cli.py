@@ -13,14 +13,14 @@ import logging
 import sys
 from pathlib import Path
 
-from .config import TrainConfig, read_yaml_params
+from .config import TASKS, TrainConfig, read_yaml_params
 from .trainer import CHECKPOINT, Trainer, run_evaluations
 
 
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="train", description=__doc__.splitlines()[0])
     ap.add_argument("--config", type=Path, help="ROS 2 parameters YAML of the task (e.g. config/gear.yaml)")
-    ap.add_argument("--task", choices=("gear", "peg", "block"))
+    ap.add_argument("--task", choices=TASKS)
     ap.add_argument("--policy", choices=("nf", "mlp"))
     ap.add_argument("--sigma-init", type=float, help="initial noise std, N")
     ap.add_argument("--seed", type=int)

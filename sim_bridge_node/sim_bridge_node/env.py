@@ -82,7 +82,8 @@ class InsertionEnv:
 
     ``reset(seed)``: ``seed`` None or negative gives the fixed start ``q_mean``; otherwise a
     start is drawn from ``N(q_mean, start_std^2)`` with a ``numpy`` Generator seeded by ``seed``,
-    redrawn until it is inside the joint limits, collision-free and above the fixture. With
+    redrawn until it is inside the joint limits, collision-free, above the fixture and (if the scene
+    has one, gear_clamp) with the TCP inside the scene's ``start_region``. With
     ``set_friction_ranges`` on, every reset also sets the episode's joint friction, drawn from the
     seed (``nf_core.friction``; ``episode_friction``), before the start state is set.
     ``step(tau)``: one 1 ms physics step with the joint torques (forces for the block) ``tau``,
@@ -121,6 +122,8 @@ class InsertionEnv:
         self._held_geoms = np.flatnonzero(m.geom_bodyid == self._held)
         self._force_adr = m.sensor_adr[m.sensor(CONTACT_FORCE_SENSOR).id]
         default_std = BLOCK_START_STD if task == "block" else ARM_START_STD
+        if self.scene.start_std is not None:  # a task with its own start spread (gear_clamp)
+            default_std = self.scene.start_std
         std = default_std if start_std is None else start_std
         self.start_std = np.broadcast_to(np.asarray(std, dtype=float), (self.nq,)).copy()
         self._vel6 = np.zeros(6)
@@ -234,6 +237,11 @@ class InsertionEnv:
             return f"in collision: {sorted(pairs)}"
         if require_above and self.data.site_xpos[self._site, 2] < self.scene.insertion_top + START_CLEARANCE:
             return "TCP not above the fixture"
+        region = self.scene.start_region
+        if require_above and region is not None:
+            tcp = self.data.site_xpos[self._site]
+            if np.any(tcp < region[0]) or np.any(tcp > region[1]):
+                return "TCP outside the task's start region"
         return ""
 
     def _set_state(self, q0: np.ndarray) -> None:

@@ -9,6 +9,10 @@ World frame: the Panda's base (``panda_link0``) at the origin on the table plane
   base and four wall boxes; the arm holds the 23 mm peg instead of the gear.
 - ``block``: no arm. A 50 mm, 1 kg cube on two slide joints (x and z) with force motors, above a
   slot 52 mm wide (1 mm per side) and 50 mm deep cut between two wall boxes.
+- ``gear_clamp``: the ``gear`` scene plus a clamp (a steel jaw, ``CLAMP_*``) standing between the
+  gear's start and the shaft; the gear starts low behind it (``Q_MEAN_GEAR_CLAMP``, TCP below the
+  clamp's top), so it has to be lifted over the clamp and lowered onto the shaft. Every path along
+  which each coordinate moves monotonically to the goal runs into the clamp (``gear_clamp.yaml``).
 - ``free``: the Panda with the gear, the table plane and lights, nothing else.
 
 Contacts: every solid geom of a scene uses ``CONTACT_SOLREF``/``CONTACT_SOLIMP`` and friction
@@ -28,7 +32,7 @@ from nf_core import panda_spec
 from sim_bridge_node.held_parts import HeldPart, add_gear, add_peg
 from sim_bridge_node.panda_model import CONTACT_MOVING, TIMESTEP, load_panda_spec
 
-TASKS = ("gear", "peg", "block", "free")
+TASKS = ("gear", "peg", "block", "free", "gear_clamp")
 
 # Contact model (all solid geoms): stiff, critically damped soft contacts.
 CONTACT_SOLREF = np.array([0.004, 1.0])  # time constant (>= 2 time steps), damping ratio
@@ -52,6 +56,26 @@ HOLE_BLOCK_HALF = 0.04  # m, half side of the hole block
 START_HEIGHT = 0.20  # m above FIXTURE_TOP
 Q_MEAN_GEAR = np.array([0.0, -0.121374, 0.0, -2.258102, 0.0, 2.136727, 0.785398])
 Q_MEAN_PEG = np.array([0.0, -0.150447, 0.0, -2.209835, 0.0, 2.059387, 0.785398])
+
+# gear_clamp: a clamp jaw (box) across the approach, between the shaft's base block (x 0.45-0.55) and
+# the start, which lies further from the robot. It spans the whole y range of the starts and rises 8 cm
+# above the start's TCP, so the gear must be lifted over it: the straight line, and every path that
+# moves each coordinate monotonically from the start to the goal, hits it. It stands 5 cm off the base
+# block, so the gear can be lowered behind it and then approach the shaft as on the plain gear task.
+CLAMP_CENTER_X = 0.61  # m: the seated gear's rim (r = 30 mm) clears it by 7 cm
+CLAMP_HALF_THICKNESS = 0.01  # m (x)
+CLAMP_HALF_LENGTH = 0.10  # m (y), centred on the shaft axis
+CLAMP_TOP = 0.20  # m, z of its top face (11 cm above the shaft top, 8 cm above the start's TCP)
+START_TCP_GEAR_CLAMP = np.array([0.71, 0.0, 0.12])  # m: the gear's rim 6 cm behind the clamp, TCP 8 cm below its top
+START_STD_GEAR_CLAMP = 0.05  # rad per joint (TCP std ~1.5, 3, 1 cm in x, y, z); starts outside the region are redrawn
+# TCP box [lo, hi] of a sampled start: behind the clamp (the gear's rim >= 2 cm off it), below its top
+START_REGION_GEAR_CLAMP = np.array([
+    [CLAMP_CENTER_X + CLAMP_HALF_THICKNESS + panda_spec.GEAR_OUTER_RADIUS + 0.02, -0.06, FIXTURE_TOP + 0.01],
+    [0.76, 0.06, FIXTURE_TOP + 0.05],
+])
+# START_TCP_GEAR_CLAMP with the hand pointing down (as Q_MEAN_GEAR), by damped least squares from
+# Q_MEAN_GEAR (tests/test_gear_clamp.py checks the TCP)
+Q_MEAN_GEAR_CLAMP = np.array([0.0, 0.705731, 0.0, -1.523225, 0.0, 2.228955, 0.785398])
 
 # 2-D block insertion.
 BLOCK_SIZE = 0.05  # m, cube side
@@ -91,6 +115,8 @@ class Scene:
     lateral_tolerance: float  # TCP this close to the axis (per axis) counts as in the opening
     success_depth: float  # m
     held_part: HeldPart | None = None
+    start_std: float | None = None  # joint std of sampled starts (None: the environment's default)
+    start_region: np.ndarray | None = None  # (2, 3) TCP box [lo, hi] a sampled start must lie in
     camera: dict = field(default_factory=dict)  # free camera for pictures: lookat, distance, ...
 
 
@@ -225,6 +251,15 @@ def _add_hole(spec: mujoco.MjSpec) -> None:
     _box(body, "hole_wall_ny", (a, wall, hz), (0.0, -a - wall, zc), PIN_RGBA)
 
 
+def add_clamp(spec: mujoco.MjSpec) -> None:
+    """The clamp jaw of ``gear_clamp``: one box from the table up to ``CLAMP_TOP`` across the approach."""
+    body = spec.worldbody.add_body()
+    body.name = "clamp"
+    body.pos = [CLAMP_CENTER_X, FIXTURE_XY[1], 0.0]
+    _box(body, "clamp_jaw", (CLAMP_HALF_THICKNESS, CLAMP_HALF_LENGTH, 0.5 * CLAMP_TOP), (0.0, 0.0, 0.5 * CLAMP_TOP),
+         FIXTURE_RGBA)
+
+
 def _arm_scene(task: str) -> Scene:
     spec = load_panda_spec()
     hand = spec.body(panda_spec.HAND_FRAME)
@@ -239,9 +274,11 @@ def _arm_scene(task: str) -> Scene:
     center = np.array([FIXTURE_XY[0], FIXTURE_XY[1], FIXTURE_TOP])
     _add_lights_and_table(spec, center)
     fixture = ""
-    if task == "gear":
+    if task in ("gear", "gear_clamp"):
         add_shaft(spec)
         fixture = "shaft"
+        if task == "gear_clamp":
+            add_clamp(spec)
         # The closed fingertip pads reach 9.5 mm into the bore's upper end (they "hold" the gear
         # there); the pin passes between them at full depth instead of stopping on them.
         for finger in ("panda_leftfinger", "panda_rightfinger"):
@@ -254,6 +291,9 @@ def _arm_scene(task: str) -> Scene:
     _add_contact_sensor(spec, held.body)
     model = spec.compile()
     q_mean = Q_MEAN_PEG if task == "peg" else Q_MEAN_GEAR
+    start_std, start_region = None, None
+    if task == "gear_clamp":
+        q_mean, start_std, start_region = Q_MEAN_GEAR_CLAMP, START_STD_GEAR_CLAMP, START_REGION_GEAR_CLAMP.copy()
     goal = np.array([FIXTURE_XY[0], FIXTURE_XY[1], FIXTURE_TOP - SHAFT_LENGTH])
     lateral = panda_spec.GEAR_BORE_RADIUS
     if task == "peg":
@@ -277,6 +317,8 @@ def _arm_scene(task: str) -> Scene:
         lateral_tolerance=lateral,
         success_depth=0.016,
         held_part=held,
+        start_std=start_std,
+        start_region=start_region,
         camera=camera,
     )
 
