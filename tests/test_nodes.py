@@ -19,6 +19,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from nf_msgs.msg import ControllerStatus, TaskStatus
 from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
 from nf_msgs.srv import ResetSim
+from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -180,11 +181,13 @@ def test_controller_holds_on_bad_joint_states(probe_and_domain, tmp_path: Path):
         with injector:
             assert probe.spin_until(lambda: not injector.alive(), 20.0)
         assert injector.proc.returncode == 0, injector.log()
-        sent = int(re.findall(r"after (\d+) states", injector.log())[-1])
+        sent, out_of_order = (int(v) for v in re.findall(r"after (\d+) states \((\d+) out", injector.log())[-1])
         # the injector exits once its states are acknowledged (in the controller's reader): give the
         # controller's executor time to answer the last of them and report it (diagnostics: 1 s)
-        reported = lambda: [int(v["steps"]) for _, m in diags if (v := diag_values(m, "nf_controller"))]  # noqa: E731
-        probe.spin_until(lambda: (reported() or [0])[-1] >= sent, 5.0)
+        def accounted() -> int:  # states answered + states the stamps say never arrived
+            last = [v for _, m in diags if (v := diag_values(m, "nf_controller"))]
+            return int(last[-1]["steps"]) + int(last[-1]["states_missing"]) if last else 0
+        probe.spin_until(lambda: accounted() >= sent, 5.0)
     log = ctl.log()
     assert ctl.proc.returncode == 0, log
     assert len(commands) > 100, f"{len(commands)} commands\n{log}"
@@ -199,11 +202,60 @@ def test_controller_holds_on_bad_joint_states(probe_and_domain, tmp_path: Path):
     assert last is not None and int(last["bad_inputs"]) > 30 and last["mode"] == "safe_hold", last
     # The controller's reader keeps the last 10 states (a control loop wants the newest): an executor
     # stall of more than 10 ms lets newer states overwrite older ones unanswered (one fresh clone's run:
-    # 731 of 860 answered). Most are answered; the controller does not yet count the overwritten ones.
-    assert 0.8 * sent <= int(last["steps"]) <= sent, f"joint states answered: {last['steps']} of {sent}"
+    # 731 of 860 answered). Every one of those is counted from the hole it leaves in the stamps; an
+    # out-of-order state (stamped 50 ms back) leaves a hole in its slot too, received or not.
+    steps, missing = int(last["steps"]), int(last["states_missing"])
+    assert 0.8 * sent <= steps <= sent, f"joint states answered: {steps} of {sent}"
+    assert sent <= steps + missing <= sent + out_of_order, (
+        f"{steps} answered + {missing} missing by the stamps, {sent} sent ({out_of_order} out of order)")
     assert "safe hold" in log and "Traceback" not in log, log
     print(f"controller: {len(commands)} finite commands, fault latched: {faults.pop()!r}, "
-          f"{last['bad_inputs']} bad inputs rejected, {last['steps']} of {sent} states answered")
+          f"{last['bad_inputs']} bad inputs rejected, {steps} of {sent} states answered, {missing} missing "
+          f"by the stamps")
+
+
+def test_controller_counts_the_joint_states_its_reader_overwrote(probe_and_domain, tmp_path: Path):
+    """States sent in bursts of 200 (1 ms stamps, as fast as Python publishes) overrun the controller's
+    keep-last reader of depth 10: DDS drops the older ones without a word. Every dropped state is
+    counted from the hole it leaves in the stamps: answered + missing = sent, exactly."""
+    probe, domain = probe_and_domain
+    diags = probe.collect(DiagnosticArray, "/diagnostics", RELIABLE, lambda m: diag_values(m, "nf_controller"))
+    pub = probe.node.create_publisher(JointState, "joint_states", qos.STATE)
+    q0 = [0.0, -0.121374, 0.0, -2.258102, 0.0, 2.136727, 0.785398]
+    names = [f"panda_joint{i}" for i in range(1, 8)]
+    commands = probe.collect(Float64MultiArray, "/effort_controller/commands")
+
+    def send(stamp: int) -> None:
+        msg = JointState(name=names, position=q0, velocity=[0.0] * 7)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
+        pub.publish(msg)
+
+    with RosProcess([*CONTROLLER, "-p", "diagnostics_period:=0.2"], domain, tmp_path / "controller.log") as ctl:
+        assert probe.spin_until(lambda: pub.get_subscription_count() > 0 and diags, 20.0), ctl.log()
+        # the first state must arrive: the stamps cannot tell what was lost before the first one
+        sent, stamp = 1, 10**9
+        send(stamp)
+        assert probe.spin_until(lambda: commands, 10.0), f"the first state was not answered\n{ctl.log()}"
+        for _ in range(5):
+            for _ in range(200):
+                stamp += 1_000_000
+                send(stamp)
+                sent += 1
+            probe.spin_for(0.1)
+        assert pub.wait_for_all_acked(Duration(seconds=5))
+
+        def accounted() -> int:
+            return int(diags[-1][1]["steps"]) + int(diags[-1][1]["states_missing"])
+        probe.spin_until(lambda: accounted() >= sent, 5.0)
+        probe.spin_for(0.5)  # one more report: nothing more may arrive
+        log = ctl.log()
+    last = diags[-1][1]
+    steps, missing = int(last["steps"]), int(last["states_missing"])
+    assert steps + missing == sent, f"{steps} answered + {missing} missing, {sent} sent\n{log}"
+    assert missing > 0 and int(last["stamp_gaps"]) > 0, f"no burst overran the reader: {last}"
+    assert "joint state(s) never answered" in log, log
+    print(f"controller: {steps} of {sent} states answered, {missing} counted missing in "
+          f"{last['stamp_gaps']} stamp gaps")
 
 
 @TIMED

@@ -63,6 +63,7 @@ from nf_core.topics import (
 from .arm_model import ArmModel
 from .control_loop import MODE_IDLE, MODE_RESETTING, MODE_RUNNING, MODE_SAFE_HOLD, ControlLoop, LoopConfig
 from .host import CHUNK, EPISODE_END, FAULT, ControllerHost, EpisodeDriver, success_of
+from .stamp_gaps import StampGaps
 from .torque_law import TorqueLawConfig
 
 _LAW = TorqueLawConfig()
@@ -86,7 +87,8 @@ PARAMETERS = {
                   "pause (no answer: a lockstep sim waits)"),
     "reset_service": (SIM_RESET, "service that resets the world before an episode (empty: no reset)"),
     "decision_period": (0.01, "s; the policy noise is drawn once per period and held"),
-    "control_period": (0.001, "s between joint states (1 kHz)"),
+    "control_period": (0.001, "s between joint states (1 kHz); standalone: stamp gaps longer than 1.5 "
+                       "periods count the states missing in them (0: no count)"),
     "episode_seconds": (5.0, "default episode length when a goal asks for 0 s"),
     "chunk_decisions": (100, "decisions per streamed rollout chunk"),
     "policy_wait": (10.0, "s an episode waits for the policy version it asks for"),
@@ -189,6 +191,9 @@ class NFControllerNode(Node):
             self._cmd.layout.dim = [self._dim]
             self._cmd_pub = self.create_publisher(Float64MultiArray, COMMANDS, qos.PUBLISH)
             self.create_subscription(JointState, JOINT_STATES, self._on_joint_state, state_qos)
+            # what the keep-last reader overwrote (or the driver skipped): counted from the stamps
+            self._gaps = StampGaps(p["control_period"])
+            self._gaps_reported = 0
             self.create_subscription(TaskStatus, TASK_STATUS, self._on_task_status, state_qos)
             if p["reset_service"]:
                 self._reset_client = self.create_client(ResetSim, p["reset_service"])
@@ -236,6 +241,7 @@ class NFControllerNode(Node):
     def _on_joint_state(self, msg: JointState) -> None:
         stamp = msg.header.stamp
         stamp_ns = stamp.sec * 1_000_000_000 + stamp.nanosec
+        self._gaps.observe(stamp_ns)
         host, loop = self.host, self.loop
         host.service()
         if not loop.steps and not self._rate_start_checked:
@@ -558,6 +564,8 @@ class NFControllerNode(Node):
     def _on_clear_fault(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         old = self.loop.fault if self.loop.controller.fault else ""
         self._on_driver_thread(self.loop.clear_fault)
+        if not self.composed:
+            self._gaps.restart()  # like the loop: the next state's stamp is the new time base
         response.success = True
         response.message = f"cleared: {old}" if old else "no fault latched"
         self.get_logger().info(response.message)
@@ -603,6 +611,12 @@ class NFControllerNode(Node):
         report = loop.take_rejection_report()  # rejections are counted per message, logged only here
         if report:
             self.get_logger().error(f"{report}; holding: {loop.fault[:MAX_FAULT_TEXT]}")
+        if not self.composed and self._gaps.missing > self._gaps_reported:
+            new, self._gaps_reported = self._gaps.missing - self._gaps_reported, self._gaps.missing
+            self.get_logger().warning(
+                f"{new} joint state(s) never answered ({self._gaps.missing} in all, in {self._gaps.gaps} "
+                f"stamp gaps): the driver skipped them or this node's keep-last reader overwrote them "
+                f"while its executor was busy")
 
     def _publish_diagnostics(self) -> None:
         loop = self.loop
@@ -623,6 +637,9 @@ class NFControllerNode(Node):
             "deadline_misses": loop.deadline_misses, "faults": loop.faults, "bad_inputs": loop.bad_inputs,
             "policy_rejections": loop.policy_rejections, "task_status_rejected": loop.bad_task_status,
         }
+        if not self.composed:  # the composed driver accounts for its own ticks
+            values.update(states_missing=self._gaps.missing, stamp_gaps=self._gaps.gaps,
+                          stamp_jumps=self._gaps.jumps)
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()

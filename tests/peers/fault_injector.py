@@ -47,6 +47,7 @@ def main() -> None:
     print(f"controller matched after {time.monotonic() - deadline + 20.0:.2f} s", flush=True)
     stamp_ns = 10**9
     n = 0
+    out_of_order = 0
 
     def send(names: list[str], q: list[float], dq: list[float], stamp: int) -> None:
         msg = JointState(name=names, position=q, velocity=dq)
@@ -61,12 +62,13 @@ def main() -> None:
                 stamp_ns += 1_000_000
                 if phase == "bad" and n % 2:  # every other state is bad, cycling through the kinds
                     kind, names, q, dq = bad[(n // 2) % len(bad)]
+                    out_of_order += kind == "out_of_order"
                     send(names, q, dq, stamp_ns - 50_000_000 if kind == "out_of_order" else stamp_ns)
                 else:
                     send(NAMES, Q0.tolist(), [0.0] * 7, stamp_ns)
                 n += 1
                 time.sleep(PERIOD)
-            print(f"phase {phase} done after {n} states", flush=True)
+            print(f"phase {phase} done after {n} states ({out_of_order} out of order)", flush=True)
         t_ack = time.monotonic()
         acked = pub.wait_for_all_acked(Duration(seconds=5))
         print(f"all acknowledged: {acked} after {time.monotonic() - t_ack:.2f} s", flush=True)
