@@ -136,8 +136,13 @@ def test_free_space_parameter_draws_never_raise_v_and_action_noise_does_work():
     policy, explorer = _policy()
     params = measure(policy, "params", 4, 0.3, explorer=explorer)
     noise = measure(policy, "action", 2, 0.3, sigma=5.0, hold=0.01)
-    assert summarize(params)["rising_fraction"] == 0.0
+    summary = summarize(params)
+    assert summary["rising_fraction"] == 0.0 and summary["rising_clamped_fraction"] == 0.0
     assert all(r.gain <= 1e-3 for r in params)
+    # the limit kinds split the limited milliseconds; the records keep every rollout
+    assert all(max(r.clamped_ms, r.rate_limited_ms) <= r.limited_ms <= r.clamped_ms + r.rate_limited_ms
+               and r.v_max >= r.v0 for r in params + noise)
+    assert [row["start_seed"] for row in summary["per_rollout"]] == [r.start_seed for r in params]
     assert any(abs(r.work) > 1e-6 for r in noise)
 
 

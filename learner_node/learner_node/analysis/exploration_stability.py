@@ -59,6 +59,9 @@ class RolloutEnergy:
     v0: float  # J, V at the start
     fault: str
     limited_ms: int = 0  # milliseconds whose torque hit the torque or rate limit (the law is then not exact)
+    clamped_ms: int = 0  # ... of those, milliseconds with a joint torque at its limit
+    rate_limited_ms: int = 0  # ... and with a torque step cut to the rate limit
+    v_max: float = 0.0  # J, the largest V of the rollout
 
 
 def free_space_rollout(
@@ -84,12 +87,16 @@ def free_space_rollout(
     v = ctrl.lyapunov(env.q, env.dq)
     v0 = v_min = v
     rise = work = 0.0
-    limited = 0
+    limited = clamped = rated = 0
+    v_max = v
     for k in range(steps):
         if noisy and k % per_hold == 0:
             eps = sigma * rng.standard_normal(3)
         tau = ctrl.step(env.q, env.dq, eps if noisy else None)
-        limited += int(bool(ctrl.flags & (CLAMPED | RATE_LIMITED)))
+        flags = ctrl.flags
+        limited += int(bool(flags & (CLAMPED | RATE_LIMITED)))
+        clamped += int(bool(flags & CLAMPED))
+        rated += int(bool(flags & RATE_LIMITED))
         if noisy:
             f = eps
         else:
@@ -99,8 +106,9 @@ def free_space_rollout(
         env.step(tau)
         v = ctrl.lyapunov(env.q, env.dq)
         v_min = min(v_min, v)
+        v_max = max(v_max, v)
         rise = max(rise, v - v_min)
-    return RolloutEnergy(start_seed, rise, work, v - v0, v0, ctrl.fault, limited)
+    return RolloutEnergy(start_seed, rise, work, v - v0, v0, ctrl.fault, limited, clamped, rated, v_max)
 
 
 def measure(
@@ -157,6 +165,14 @@ def summarize(records: list[RolloutEnergy], tolerance: float = DEFAULT_TOLERANCE
         "work_max_J": float(work.max()),
         "gain_max_J": float(gain.max()),
         "faults": sum(bool(r.fault) for r in records),
+        # the rising rollouts: which limit they hit, and how the rise compares with where V started
+        "rising_clamped_fraction": float(np.mean((rise > tolerance) & np.array([r.clamped_ms > 0 for r in records]))),
+        "rising_rate_only_fraction": float(np.mean((rise > tolerance) & np.array(
+            [r.clamped_ms == 0 and r.rate_limited_ms > 0 for r in records]))),
+        "rise_over_v0_max": float(max((r.rise / r.v0 for r in records if r.v0 > 0), default=0.0)),
+        "per_rollout": [{"start_seed": r.start_seed, "v0_J": r.v0, "v_max_J": r.v_max, "rise_J": r.rise,
+                         "gain_J": r.gain, "clamped_ms": r.clamped_ms, "rate_limited_ms": r.rate_limited_ms}
+                        for r in records],
     }
 
 
@@ -214,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
                if scheme == "params" else None,
                **summarize(recs, args.tolerance)}
         rows.append(row)
-        print(json.dumps(row), flush=True)
+        print(json.dumps({k: v for k, v in row.items() if k != "per_rollout"}), flush=True)
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1))
     return 0
