@@ -97,6 +97,11 @@ class TrainConfig:
     """S entry of the last (insertion, z) axis, replacing ``stiffness`` there (None: isotropic S)."""
     damping_axial: float | None = None
     """D entry of the last (insertion, z) axis, replacing ``damping`` there (None: isotropic D)."""
+    potential_force_bound: float = 0.0
+    """Bound on the flow potential's pull, N in the latent space (``TorqueLawConfig.potential_force_bound``):
+    beyond it the potential grows linearly, so a stiff policy started far from x_ref does not drive the
+    joints into their torque limits, where the stability proof does not reach. 0: off. A shared (``/**``)
+    setting: the controller node reads the same key. Parameter exploration only."""
     gains: str = "fixed"
     """NF policy: fixed (S, D as set above) or learned (their diagonals, through exp, start at the values
     above: every value stays symmetric positive definite, so the stability proof holds throughout)."""
@@ -268,6 +273,10 @@ class TrainConfig:
         _choice("param_adv_scale", self.param_adv_scale, PARAM_ADV_SCALES)
         _choice("param_spread_signal", self.param_spread_signal, PARAM_SPREAD_SIGNALS)
         _non_negative("param_lr_flow", self.param_lr_flow)
+        _non_negative("potential_force_bound", self.potential_force_bound)
+        if self.potential_force_bound > 0.0 and self.exploration == "action":
+            raise ValueError("potential_force_bound needs exploration=params: the learner's differentiable force "
+                             "(action noise's likelihood) has no bound")
         _non_negative("flow_input_scale", self.flow_input_scale)
         _positive("param_lr", self.param_lr)
         _non_negative("param_sigma_lr", self.param_sigma_lr)

@@ -31,7 +31,7 @@ import numpy as np
 
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
-from nf_controller_node.torque_law import excess_norm
+from nf_controller_node.torque_law import TorqueLawConfig, excess_norm
 from nf_core import panda_spec
 from nf_core.episode import EpisodeRun, EpisodeSpec
 from nf_core.friction import FrictionRanges
@@ -147,7 +147,8 @@ class RolloutRunner:
         run = EpisodeRun(self.episode_spec(sigma), rng=noise_rng)
         period = self._arm_period if self.arm is not None else self._block_period
         if self.controller is None and self.arm is not None:
-            self.controller = FlowController(self.arm, evaluator)
+            self.controller = FlowController(self.arm, evaluator,
+                                             TorqueLawConfig(potential_force_bound=cfg.potential_force_bound))
         if self.controller is not None:
             self.controller.set_evaluator(evaluator)
             self.controller.reset_rate_limit()

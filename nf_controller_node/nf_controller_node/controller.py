@@ -202,10 +202,14 @@ class FlowController:
         """Swap the flow (new policy parameters); call only between episodes."""
         self.evaluator = evaluator
         self._kernel_args = evaluator.kernel_args() if isinstance(evaluator, FlowEvaluator) else None
+        if self._kernel_args is not None:
+            evaluator.set_force_bound(self.law.potential_force_bound)
 
     def set_law(self, law: TorqueLawConfig) -> None:
         """Set gains and limits of the torque law; call only between episodes."""
         self.law = law
+        if isinstance(getattr(self, "evaluator", None), FlowEvaluator):
+            self.evaluator.set_force_bound(law.potential_force_bound)
         self.tau_joint[:] = 0.0  # recomputed each step while a joint spring is on
         self._anchored = False  # the next hold anchors where it begins, under the new law
         self._gains = np.array([law.k_rot, law.d_rot, law.joint_damping, float(law.gravity_compensation),

@@ -258,7 +258,10 @@ def _phi_jac_kernel(x, wp, layout, code, work, out, out_j) -> int:
 
 @_jit
 def _potential_kernel(x, wp, layout, code, consts, work) -> int:
-    """consts = [S (dim*dim), D (dim*dim), phi_ref (dim)]; the value goes to work[_W_POT, 0]."""
+    """consts = [S (dim*dim), D (dim*dim), phi_ref (dim), e0]; the value goes to work[_W_POT, 0].
+
+    The potential is psi(E), E = 1/2 e^T S e: E itself up to e0, 2 sqrt(e0 E) - e0 beyond (e0 > 0,
+    ``FlowEvaluator.set_force_bound``): continuous with its slope, growing like |e| far out."""
     if not _all_finite(x):
         return _BAD_X
     dim = x.shape[0]
@@ -270,13 +273,18 @@ def _potential_kernel(x, wp, layout, code, consts, work) -> int:
     for i in range(dim):
         for j in range(dim):
             v += work[_W_E, i] * consts[i * dim + j] * work[_W_E, j]
-    work[_W_POT, 0] = 0.5 * v
+    v *= 0.5
+    e0 = consts[pref + dim]
+    if e0 > 0.0 and v > e0:
+        v = 2.0 * math.sqrt(e0 * v) - e0
+    work[_W_POT, 0] = v
     return _OK if math.isfinite(work[_W_POT, 0]) else _BAD_OUT
 
 
 @_jit
 def _force_kernel(x, xdot, wp, layout, code, consts, work, out) -> int:
-    """u = -J^T (S e + D J xdot), e = phi(x) - phi(x_ref); consts as in _potential_kernel."""
+    """u = -J^T (psi'(E) S e + D J xdot), e = phi(x) - phi(x_ref); consts and psi as in
+    _potential_kernel (psi' = 1 without a bound, else min(1, sqrt(e0 / E)))."""
     if not _all_finite(x):
         return _BAD_X
     if not _all_finite(xdot):
@@ -290,11 +298,23 @@ def _force_kernel(x, xdot, wp, layout, code, consts, work, out) -> int:
         for j in range(dim):
             acc += work[_W_J, i * dim + j] * xdot[j]
         work[_W_V, i] = acc
+    scale = 1.0
+    e0 = consts[2 * dd + dim]
+    if e0 > 0.0:  # the bounded pull: psi'(E) from E = 1/2 e^T S e
+        energy = 0.0
+        for i in range(dim):
+            for j in range(dim):
+                energy += work[_W_E, i] * consts[i * dim + j] * work[_W_E, j]
+        energy *= 0.5
+        if energy > e0:
+            scale = math.sqrt(e0 / energy)
     for i in range(dim):
-        acc = 0.0
+        pull = 0.0
+        drag = 0.0
         for j in range(dim):
-            acc += consts[i * dim + j] * work[_W_E, j] + consts[dd + i * dim + j] * work[_W_V, j]
-        work[_W_WV, i] = acc
+            pull += consts[i * dim + j] * work[_W_E, j]
+            drag += consts[dd + i * dim + j] * work[_W_V, j]
+        work[_W_WV, i] = scale * pull + drag
     ok = True
     for i in range(dim):
         acc = 0.0
@@ -353,11 +373,12 @@ class FlowEvaluator:
         self.damping = params.damping.copy()
         self.x_ref = params.x_ref.copy()
         self._work = np.zeros(work_shape(arch))
-        self._consts = np.zeros(2 * d * d + d)
+        self._consts = np.zeros(2 * d * d + d + 1)  # the last entry: e0 of the force bound (0: none)
+        self.force_bound = 0.0
         self._consts[: d * d] = self.stiffness.reshape(-1)
         self._consts[d * d : 2 * d * d] = self.damping.reshape(-1)
         self.phi_ref = self.phi(self.x_ref)
-        self._consts[2 * d * d :] = self.phi_ref
+        self._consts[2 * d * d : 2 * d * d + d] = self.phi_ref
         if warmup:
             self.force(self.x_ref, np.zeros(d))
             self.phi_and_jacobian(self.x_ref)
@@ -417,8 +438,23 @@ class FlowEvaluator:
             self._raise(status, x)
         return out, out_jac
 
+    def set_force_bound(self, bound: float) -> None:
+        """Bound the potential's pull to ``bound`` N in the latent space (0: no bound, the plain
+        quadratic potential). The potential becomes psi(E), E = 1/2 e^T S e, with psi'(E) =
+        min(1, sqrt(e0 / E)) and e0 = bound^2 / (2 lambda_max(S)): still a potential (a function of
+        E alone), positive definite and radially unbounded, so the stability proof is unchanged; its
+        pull |psi'(E) S e| never exceeds ``bound`` (with the identity flow: the TCP force)."""
+        bound = float(bound)
+        if not (math.isfinite(bound) and bound >= 0.0):
+            raise ValueError(f"force bound must be finite and >= 0 N, got {bound}")
+        d = self.dim
+        lam = float(np.linalg.eigvalsh(0.5 * (self.stiffness + self.stiffness.T)).max())
+        self.force_bound = bound
+        self._consts[2 * d * d + d] = bound * bound / (2.0 * lam) if bound > 0.0 else 0.0
+
     def force(self, x: np.ndarray, xdot: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """Controller force u = -J^T S (phi(x)-phi(x_ref)) - J^T D J xdot, shape (dim,)."""
+        """Controller force u = -J^T psi'(E) S (phi(x)-phi(x_ref)) - J^T D J xdot, shape (dim,)
+        (psi' = 1 without a force bound)."""
         # the checks of _vec/_out inlined for the common case: this is the 1 kHz call
         shape = self._shape
         if not (
@@ -442,7 +478,8 @@ class FlowEvaluator:
         return out
 
     def potential(self, x: np.ndarray) -> float:
-        """Lyapunov potential 1/2 (phi(x)-phi(x_ref))^T S (phi(x)-phi(x_ref))."""
+        """Lyapunov potential psi(E), E = 1/2 (phi(x)-phi(x_ref))^T S (phi(x)-phi(x_ref)) (psi(E) = E
+        without a force bound)."""
         x = self._vec(x, "x")
         status = _potential_kernel(x, self._wp, self._layout, self._code, self._consts, self._work)
         if status:

@@ -79,6 +79,8 @@ PARAMETERS = {
     "joint_limit_stiffness": (_LAW.joint_limit_stiffness, "Nm/rad of the springs that push a joint back from "
                               "its limit (0: off; conservative, so every policy stays stable)"),
     "joint_limit_margin": (_LAW.joint_limit_margin, "rad before a joint limit where its spring starts"),
+    "potential_force_bound": (_LAW.potential_force_bound, "N (latent space): the flow potential's pull is bounded "
+                              "to this, the potential growing linearly beyond (0: off; still provably stable)"),
     "deadline": (0.001, "s; a step taking longer is a deadline miss"),
     "max_consecutive_misses": (20, "deadline misses in a row that latch the safe hold (0: never)"),
     "state_timeout": (0.0, "s without a joint state before the safe hold (realtime drivers; 0: off)"),
@@ -131,7 +133,8 @@ def _loop_from(p: dict, arm: ArmModel | None = None, joint_names: Sequence[str] 
     law = TorqueLawConfig(k_rot=p["k_rot"], d_rot=p["d_rot"], joint_damping=p["joint_damping"],
                           hold_damping=p["hold_damping"], hold_stiffness=p["hold_stiffness"],
                           gravity_compensation=p["gravity_compensation"],
-                          joint_limit_stiffness=p["joint_limit_stiffness"], joint_limit_margin=p["joint_limit_margin"])
+                          joint_limit_stiffness=p["joint_limit_stiffness"], joint_limit_margin=p["joint_limit_margin"],
+                          potential_force_bound=p["potential_force_bound"])
     config = LoopConfig(deadline=p["deadline"], max_consecutive_misses=p["max_consecutive_misses"],
                         state_timeout=p["state_timeout"], idle_mode=p["idle_mode"])
     if not p["chunk_decisions"] >= 1:

@@ -40,12 +40,17 @@ class TorqueLawConfig:
     # joins V (``joint_limit_potential``), so the stability proof holds with it. 0: off.
     joint_limit_stiffness: float = 0.0
     joint_limit_margin: float = 0.1
+    # Bound on the flow potential's pull, N in the latent space (FlowEvaluator.set_force_bound): beyond
+    # the bound the potential grows linearly instead of quadratically, so far from x_ref a stiff policy
+    # does not drive the joints into their torque limits, where the proof does not reach. Still a
+    # potential: every policy stays provably stable. 0: off (the plain quadratic potential).
+    potential_force_bound: float = 0.0
     q_min: np.ndarray = field(default_factory=lambda: panda_spec.Q_MIN.copy())
     q_max: np.ndarray = field(default_factory=lambda: panda_spec.Q_MAX.copy())
 
     def __post_init__(self) -> None:
         for name in ("k_rot", "d_rot", "joint_damping", "hold_damping", "hold_stiffness", "torque_rate_limit", "dt",
-                     "joint_limit_stiffness", "joint_limit_margin"):
+                     "joint_limit_stiffness", "joint_limit_margin", "potential_force_bound"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0.0 or (name == "dt" and value == 0.0):
                 raise ValueError(f"TorqueLawConfig.{name} must be finite and >= 0 (dt > 0), got {value}")

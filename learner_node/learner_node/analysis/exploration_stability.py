@@ -35,7 +35,7 @@ import torch
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
 from nf_controller_node.flow_eval import FlowEvaluator
-from nf_controller_node.torque_law import CLAMPED, RATE_LIMITED
+from nf_controller_node.torque_law import CLAMPED, RATE_LIMITED, TorqueLawConfig
 from nf_core import panda_spec
 from sim_bridge_node.env import InsertionEnv
 
@@ -121,6 +121,7 @@ def measure(
     hold: float = 0.01,
     explorer: ParamExploration | None = None,
     seed: int = 0,
+    force_bound: float = 0.0,
 ) -> list[RolloutEnergy]:
     """``rollouts`` free-space rollouts of ``scheme`` from held-out starts (params: mirrored draws of
     ``explorer``, as in training)."""
@@ -129,7 +130,7 @@ def measure(
     env = InsertionEnv("free")
     arm = ArmModel(part=panda_spec.GEAR_PART)  # the free scene's hand holds the gear
     nominal = FlowEvaluator(policy.to_params())
-    ctrl = FlowController(arm, nominal)
+    ctrl = FlowController(arm, nominal, TorqueLawConfig(potential_force_bound=force_bound))  # bounds every draw too
     rng = np.random.default_rng(seed)
     draws: np.ndarray | None = None
     if scheme == "params":
@@ -223,8 +224,10 @@ def main(argv: list[str] | None = None) -> int:
     hold = cfg.decision_period if args.hold is None else args.hold
     rows = []
     for scheme in args.schemes.split(","):
-        recs = measure(policy, scheme, args.rollouts, args.seconds, sigma=sigma, hold=hold, explorer=explorer)
-        row = {"scheme": scheme, "sigma_N": sigma if scheme == "action" else None,
+        recs = measure(policy, scheme, args.rollouts, args.seconds, sigma=sigma, hold=hold, explorer=explorer,
+                       force_bound=cfg.potential_force_bound)
+        row = {"scheme": scheme, "potential_force_bound_N": cfg.potential_force_bound,
+               "sigma_N": sigma if scheme == "action" else None,
                "hold_s": hold if scheme == "action" else None,
                "param_sigma_gains": float(torch.exp(explorer.log_sigma_gains.detach()).mean())
                if scheme == "params" else None,
