@@ -22,7 +22,7 @@ import numpy as np
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
 from nf_controller_node.flow_eval import FlowEvaluator
-from nf_controller_node.torque_law import task_space_torque
+from nf_controller_node.torque_law import TorqueLawConfig, task_space_torque
 from nf_core.flow_spec import FlowArchitecture
 from nf_core.policy_params import PolicyParameters
 
@@ -79,6 +79,9 @@ def bench_architecture(arch: FlowArchitecture, calls: int, autograd_calls: int, 
     ctrl.set_posture(Q_HOME, 20.0, 10.0)  # a Franka reset motion's step: the posture spring on
     posture_us = _time(fast, calls, warmup=2000)
     ctrl.set_posture(None)
+    ctrl.set_law(TorqueLawConfig(potential_force_bound=60.0))  # make run's bounded pull (gear_learn.yaml)
+    bound_us = _time(fast, calls, warmup=2000)
+    ctrl.set_law(TorqueLawConfig())
     if ctrl.fault:
         raise RuntimeError(f"controller faulted during the benchmark: {ctrl.fault}")
 
@@ -118,6 +121,7 @@ def bench_architecture(arch: FlowArchitecture, calls: int, autograd_calls: int, 
         "arch": {"dim": arch.dim, "n_flow": arch.n_flow, "n_hidden": arch.n_hidden, "activation": arch.activation},
         "compiled_step": fast_stats,
         "compiled_step_posture_spring": _stats(posture_us),
+        "compiled_step_force_bound": _stats(bound_us),
         "autograd_step": slow_stats,
         "speedup_median": slow_stats["median_us"] / fast_stats["median_us"],
         "torque_difference_nm": agree,

@@ -134,10 +134,11 @@ def main() -> int:
     else:
         for r in ctrl["results"]:
             a, c, s = r["arch"], r["compiled_step"], r["autograd_step"]
-            p = r["compiled_step_posture_spring"]
+            p, b = r["compiled_step_posture_spring"], r["compiled_step_force_bound"]
             print(f"   n_flow={a['n_flow']} n_h={a['n_hidden']}: compiled median {c['median_us']:.1f} us, "
                   f"p99 {c['p99_us']:.1f} us (posture spring on, a reset's step: {p['median_us']:.1f} us, "
-                  f"p99 {p['p99_us']:.1f} us); autograd median {s['median_us']:.0f} us; "
+                  f"p99 {p['p99_us']:.1f} us; force bound on: {b['median_us']:.1f} us, p99 {b['p99_us']:.1f} us); "
+                  f"autograd median {s['median_us']:.0f} us; "
                   f"speedup {r['speedup_median']:.0f}x")
     sim_script = HERE / "bench_sim.py"
     if sim_script.exists():
