@@ -161,7 +161,7 @@ def main(argv: list[str] | None = None) -> None:
         cols = {"prior (S0, identity flow)": prior,
                 "learned S, D, flow reset to identity": identity_flow_copy(policy),
                 "learned flow + S, D": policy}
-        plot_landscape(cols, args.out, f"gear, {run.name}: potential V(x, xdot=0) around the goal")
+        plot_landscape(cols, args.out, f"{cfg.task}, {run.name}: potential V(x, xdot=0) around the goal")
 
 
 if __name__ == "__main__":
