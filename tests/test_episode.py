@@ -10,6 +10,7 @@ from learner_node.config import TrainConfig
 from learner_node.trainer import Trainer, make_evaluator, policy_sigma
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.control_loop import ControlLoop
+from nf_controller_node.torque_law import TorqueLawConfig
 from nf_core import panda_spec
 from nf_core.episode import EpisodeRun, EpisodeSpec
 from nf_core.reward import RewardWeights
@@ -170,3 +171,32 @@ def test_a_given_generator_draws_the_noise_the_seed_would():
     np.testing.assert_array_equal(by_seed.eps, by_rng.eps)
     np.testing.assert_array_equal(by_seed.log_prob(), by_rng.log_prob())
     assert np.all(by_seed.eps != 0.0)
+
+
+def test_effort_of_a_driver_that_compensates_gravity_leaves_gravity_alone(gear_setup):
+    """A Franka adds g(q) to our command: the episode's torque norm is then |tau| of the command, not
+    |tau - g| (which reported the arm's ~40 Nm of gravity as effort on the robot path)."""
+    cfg, trainer, _, env = gear_setup
+    loop = ControlLoop(ArmModel(part=panda_spec.GEAR_PART), TorqueLawConfig(gravity_compensation=False))
+    loop.set_policy(trainer.policy.to_params(version=1))
+    spec = EpisodeSpec(episode_id=2, policy_version=1, duration=cfg.episode_seconds,
+                       decision_period=cfg.decision_period, control_period=0.001, sigma=None, noise_seed=0,
+                       x_goal=trainer.x_ref, weights=RewardWeights.from_config(cfg), chunk_decisions=7)
+    env.reset(seed=1234)
+    run = EpisodeRun(spec)
+    stamp = CLOCK[0] = CLOCK[0] + 1_000_000_000
+    loop.start_episode(run, stamp, world_was_reset=True)
+    norms, gravity = [], []
+    while not run.done:
+        loop.depth = env.insertion_depth
+        tau, fault = loop.on_joint_state(NAMES, env.q, env.dq, stamp, 0.0)
+        assert not fault
+        g = loop.controller.arm.g.copy()
+        norms.append(float(np.linalg.norm(tau)))
+        gravity.append(float(np.linalg.norm(g)))
+        env.step(tau + g)  # the driver adds gravity, as libfranka's robot does
+        stamp += 1_000_000
+    loop.end_episode()
+    n = run.K * run.P  # the state that closes the last decision gets a command, not counted
+    assert run.mean_torque == pytest.approx(np.mean(norms[:n]), rel=1e-9)
+    assert run.mean_torque < 0.5 * np.mean(gravity), (run.mean_torque, np.mean(gravity))

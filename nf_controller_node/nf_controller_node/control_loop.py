@@ -215,6 +215,7 @@ class ControlLoop:
         self.resetting = False  # the world is being reset for an episode: answer no state
         self._episode_eps = np.zeros(3)
         self._episode_tau = np.zeros(arm.nq)  # command sent for the last state of the episode
+        self._no_gravity = np.zeros(arm.nq)  # what the command holds of g(q) when the driver compensates it
         self._u_mean = np.zeros(3)
         self.depth = float("nan")  # latest insertion depth from the simulator's task status (m), if any
         self.task_success = False  # latest success flag of the task status
@@ -524,7 +525,9 @@ class ControlLoop:
             u_mean = None
             if run.steps % run.P == 0 and run.steps < run.K * run.P:
                 u_mean = ctrl.evaluator.force(arm.x, ctrl.xdot, self._u_mean)
-            run.record(arm.x, ctrl.xdot, u_mean, self.depth, excess_norm(tau, arm.g))
+            # the effort beyond gravity: a driver that adds g(q) itself (Franka) gets a command without it
+            g = arm.g if ctrl.law.gravity_compensation else self._no_gravity
+            run.record(arm.x, ctrl.xdot, u_mean, self.depth, excess_norm(tau, g))
             self._episode_last = stamp_ns
         return tau
 

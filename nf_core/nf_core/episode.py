@@ -273,6 +273,6 @@ class EpisodeRun:
 
     @property
     def mean_torque(self) -> float:
-        """Mean |tau - g| over the episode's commands, Nm."""
+        """Mean |tau - g| over the episode's commands, Nm (|tau| when the driver adds g itself)."""
         n = min(self.steps, self.K * self.P)
         return self.torque_sum / n if n else 0.0
