@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import io
 import json
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -97,3 +100,23 @@ def test_from_checkpoint_reaches_the_learner_and_the_summary_says_where_the_prio
     assert (f"Started from `{started['checkpoint']}` (after iteration 30 of a gear run, goal [0.5, 0.0, 0.07]): the "
             "prior is that policy, unchanged but for this run's goal [0.5, 0.0, 0.05]") in summary
     assert f"| the prior, started from {started['checkpoint']} (before iteration 1) | 10 |" in summary
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
+def test_a_runner_stops_cleanly_on_any_stop_signal_even_started_with_sigint_ignored(sig):
+    """make run / make run-franka started in the background by a shell without job control get SIGINT
+    ignored, and SIGTERM used to end the runner alone, leaving its children running: stop_on_signals makes
+    each of them a KeyboardInterrupt, the path that stops the children and writes the summary."""
+    code = ("import time\nfrom nf_bringup.processes import stop_on_signals\nstop_on_signals()\n"
+            "print('ready', flush=True)\ntry:\n    time.sleep(60)\nexcept KeyboardInterrupt as exc:\n"
+            "    print('stopped', exc, flush=True)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        proc.send_signal(sig)
+        out, _ = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert out.strip() == f"stopped {sig.name}" and proc.returncode == 0

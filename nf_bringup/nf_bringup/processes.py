@@ -27,6 +27,20 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGKILL)
 _domains = itertools.count()
 
 
+def stop_on_signals() -> None:
+    """Make SIGINT, SIGTERM and SIGHUP raise ``KeyboardInterrupt`` in the main thread, so a runner stops
+    its children and writes its summary however it is stopped: Ctrl-C, ``kill <PID>``, a closed
+    terminal, or a job started in the background by a shell without job control (which starts it with
+    SIGINT ignored: ``nohup make run-franka &`` could not be interrupted, and SIGTERM left franky-sim, the
+    stack and the learner running without their runner)."""
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, interrupt)
+
+
 def source_root() -> Path | None:
     """The checkout holding the package sources (None for a copy installed outside one)."""
     for parent in Path(__file__).resolve().parents:

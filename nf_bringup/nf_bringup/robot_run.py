@@ -34,9 +34,15 @@ import yaml
 
 from nf_core.friction import OFF, FrictionRanges
 
-from .processes import ManagedProcess, allocate_domain_id, ros_env
+from .processes import ManagedProcess, allocate_domain_id, ros_env, stop_on_signals
 from .run_summary import plot_curves, write_summary
-from .stack import POLICY_READY, RECORDER_READY, from_checkpoint_args, wait_for_recorder
+from .stack import POLICY_READY, from_checkpoint_args, wait_for_recorder
+
+# The learner starts once the recorder records these: the Franka stack's controller is composed with
+# its driver and publishes no effort_controller/commands (the driver's joint_states carry the torque),
+# so waiting for that topic as make run does cost every robot run 120 s before it began.
+ROBOT_RECORDED_BEFORE_LEARNING = ("/joint_states", "/rollouts")
+ROBOT_RECORDER_READY = tuple(f"recording {t} (" for t in ROBOT_RECORDED_BEFORE_LEARNING)
 
 FRANKY = "franky"
 FRANKY_GOAL = (0.5, 0.0, 0.05)  # the gear cell's goal on franky-sim: 2 cm below the shaft's mouth (0.07 m)
@@ -174,6 +180,7 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``run_robot``."""
     args = _parse(argv)
+    stop_on_signals()
     run_dir = args.out
     run_dir.mkdir(parents=True, exist_ok=True)
     domain_id = args.domain_id if args.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID")
@@ -200,10 +207,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             print("[run] franky-sim up on 127.0.0.1 (FR3, gear cell)", flush=True)
         if record:
             procs["recorder"] = ManagedProcess("recorder", cmds["recorder"], env, run_dir / "logs",
-                                               watch=(*RECORDER_READY, POLICY_READY))
+                                               watch=(*ROBOT_RECORDER_READY, POLICY_READY))
         procs["arm"] = ManagedProcess("arm", cmds["arm"], env, run_dir / "logs")
         if record:
-            wait_for_recorder(procs["recorder"], [procs["arm"]])
+            wait_for_recorder(procs["recorder"], [procs["arm"]], texts=ROBOT_RECORDER_READY)
         if procs["arm"].running():
             procs["learner"] = ManagedProcess("learner", cmds["learner"], env, run_dir / "logs", on_line=Progress())
             while procs["learner"].running() and procs["arm"].running():

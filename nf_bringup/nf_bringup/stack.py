@@ -34,7 +34,7 @@ from pathlib import Path
 
 import yaml
 
-from .processes import ManagedProcess, allocate_domain_id, ros_env
+from .processes import ManagedProcess, allocate_domain_id, ros_env, stop_on_signals
 from .run_summary import final_video, plot_curves, write_summary
 
 CHECKPOINT = "checkpoint.pt"  # the learner's (learner_node.trainer.CHECKPOINT), in <run>/learner/
@@ -175,6 +175,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         parser.error(str(exc))
     run_dir.mkdir(parents=True, exist_ok=True)
+    stop_on_signals()
     domain_id = args.domain_id
     if domain_id is None:  # the caller's, else one of its own
         domain_id = int(os.environ.get("ROS_DOMAIN_ID") or allocate_domain_id())
