@@ -86,6 +86,38 @@ def test_update_moves_the_gains_toward_the_better_draws():
     torch.testing.assert_close(policy.S, policy.gains()[0].detach())  # synced for the checkpoint
 
 
+def test_sgd_moves_the_coordinate_the_returns_follow_and_leaves_the_others():
+    """Returns follow ln S_z only. Adam moves every coordinate about a full step per update (the others by
+    noise); the search-gradient step (sgd) moves S_z as far and the five others far less."""
+    moved = {}
+    for kind, lr in (("adam", 0.1), ("sgd", 0.5)):
+        policy, explorer = _policy()
+        opt = make_param_optimizer(explorer, lr, 0.0, kind=kind)
+        rng = np.random.default_rng(5)
+        start = explorer.mean().detach().numpy().copy()
+        for _ in range(4):
+            theta, _ = explorer.sample(14, rng)
+            param_ppo_update(explorer, opt, theta, paired_advantages(-theta[:, 2]), epochs=5, clip_coef=0.2)
+        moved[kind] = np.abs(explorer.mean().detach().numpy() - start)
+    others = [0, 1, 3, 4, 5]
+    assert moved["sgd"][2] > 0.5 * moved["adam"][2] > 0.1, moved
+    assert moved["sgd"][others].mean() < 0.5 * moved["adam"][others].mean(), moved
+    assert moved["sgd"][2] > 3.0 * moved["sgd"][others].max(), moved
+    with pytest.raises(ValueError, match="param optimizer"):
+        make_param_optimizer(explorer, 0.1, 0.0, kind="lbfgs")
+
+
+def test_sgd_step_follows_the_current_std():
+    """param_step=current with sgd: the mean's learning rate is lr * sigma^2 (a step of lr sigma per unit
+    correlation), also after the spread decays."""
+    _, explorer = _policy()
+    opt = make_param_optimizer(explorer, 0.5, 0.0, kind="sgd")
+    assert opt.param_groups[0]["lr"] == pytest.approx(0.5 * 0.4**2)
+    explorer.decay(0.5)
+    follow_sigma(explorer, opt, 0.5)
+    assert opt.param_groups[0]["lr"] == pytest.approx(0.5 * 0.2**2)
+
+
 def test_pair_mean_advantages_are_symmetric_and_centred():
     adv = pair_mean_advantages(np.array([1.0, 3.0, 10.0, 14.0, np.nan, 0.0, 7.0]))
     np.testing.assert_allclose(adv, [-5.0, -5.0, 5.0, 5.0, 0.0, 0.0, 0.0])  # pair means 2, 12; NaN pair, odd one: 0

@@ -36,6 +36,7 @@ GAINS = ("fixed", "learned")
 EXPLORATIONS = ("action", "params")
 PARAM_FLOWS = ("all", "output", "subspace")
 PARAM_STEPS = ("initial", "current")
+PARAM_OPTIMIZERS = ("adam", "sgd")
 PARAM_RATIOS = ("joint", "group")
 PARAM_ADV_SCALES = ("batch", "running")
 PARAM_SPREAD_SIGNALS = ("none", "pair_mean")
@@ -127,6 +128,11 @@ class TrainConfig:
     """exploration=params: Adam step size of the parameter-space mean, in units of its exploration std."""
     param_lr_flow: float = 0.0
     """exploration=params: the flow mean's Adam step in units of its std (0: param_lr)."""
+    param_optimizer: str = "adam"
+    """exploration=params: the mean's optimiser. adam: every coordinate moves about param_lr stds per step
+    whatever its gradient's size; sgd: the search-gradient step of evolution strategies, param_lr stds per
+    step times the correlation of the advantages with that coordinate's draws, so coordinates the returns
+    do not follow stay put (``param_explore.make_param_optimizer``)."""
     param_ratio: str = "joint"
     """exploration=params: one PPO ratio over all explored parameters (joint) or one per group (group:
     gains and flow; the distribution factorises, so each is that group's own likelihood ratio)."""
@@ -268,6 +274,7 @@ class TrainConfig:
         _non_negative("param_sigma_flow", self.param_sigma_flow)
         _choice("param_flow", self.param_flow, PARAM_FLOWS)
         _choice("param_step", self.param_step, PARAM_STEPS)
+        _choice("param_optimizer", self.param_optimizer, PARAM_OPTIMIZERS)
         _int_range("param_flow_dim", self.param_flow_dim, 1, 100_000)
         _choice("param_ratio", self.param_ratio, PARAM_RATIOS)
         _choice("param_adv_scale", self.param_adv_scale, PARAM_ADV_SCALES)

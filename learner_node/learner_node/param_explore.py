@@ -27,6 +27,7 @@ from torch import nn
 
 from nf_core.policy_params import PolicyParameters
 
+from .config import PARAM_OPTIMIZERS
 from .flow import output_layer_mask, rescale_flow_weights
 from .policy import LN_MAX_DAMPING, LN_MAX_STIFFNESS, NFPolicy
 from .ppo import approx_kl, clipped_surrogate_loss
@@ -252,33 +253,46 @@ def pair_rms(advantages: np.ndarray) -> float:
 
 
 def make_param_optimizer(
-    explorer: ParamExploration, lr: float, sigma_lr: float, lr_flow: float = 0.0
-) -> torch.optim.Adam:
-    """Adam with steps scaled per group: the mean moves by about ``lr`` (the flow's: ``lr_flow`` if > 0)
-    of its (initial) std per step, the log-stds by ``sigma_lr`` (0: not optimised, the stds stay as
-    initialised). Adam moves every coordinate by about its step whatever the size of its gradient, so
-    in the flow's ~100-1000 coordinates, estimated from a few mirrored pairs, a gains-sized step is
-    mostly a random walk: the flow needs its own, smaller step."""
+    explorer: ParamExploration, lr: float, sigma_lr: float, lr_flow: float = 0.0, kind: str = "adam"
+) -> torch.optim.Optimizer:
+    """The optimiser of the exploration's mean and log-stds, with steps scaled per group.
+
+    ``adam``: the mean moves by about ``lr`` (the flow's: ``lr_flow`` if > 0) of its (initial) std per
+    step, the log-stds by ``sigma_lr`` (0: not optimised, the stds stay as initialised). Adam moves every
+    coordinate by about its step whatever the size of its gradient, so in the flow's ~100-1000
+    coordinates, estimated from a few mirrored pairs, a gains-sized step is mostly a random walk: the
+    flow needs its own, smaller step.
+
+    ``sgd``: plain gradient steps, the search-gradient step of evolution strategies. At the start of an
+    update the surrogate's gradient in a mean coordinate is -mean_i(A_i eps_i) / sigma (eps: the draws
+    in stds, A: advantages of unit RMS), so a learning rate of ``lr`` sigma^2 moves it by ``lr`` sigma
+    times the correlation of the advantages with that coordinate's draws: a coordinate the returns
+    follow moves, one they do not (a damping that does not matter) stays nearly where it is, instead of
+    a full Adam step in a random direction every update. The log-stds take ``sigma_lr`` times their
+    gradient."""
+    if kind not in PARAM_OPTIMIZERS:
+        raise ValueError(f"param optimizer must be one of {PARAM_OPTIMIZERS}, got {kind!r}")
+    power = 1 if kind == "adam" else 2
     groups = []
     pol = explorer.policy[0]
     if explorer.explore_gains:
         sg = float(torch.exp(explorer.log_sigma_gains.detach()).mean())
-        groups.append({"params": [pol.ln_s, pol.ln_d], "lr": lr * sg, "std_of": "gains"})
+        groups.append({"params": [pol.ln_s, pol.ln_d], "lr": lr * sg**power, "std_of": "gains", "std_power": power})
         if sigma_lr > 0.0:
             groups.append({"params": [explorer.log_sigma_gains], "lr": sigma_lr})
     if explorer.explore_flow:
         sf = float(torch.exp(explorer.log_sigma_flow.detach())[0])
-        groups.append({"params": [explorer.flow_mu], "lr": (lr_flow if lr_flow > 0.0 else lr) * sf,
-                       "std_of": "flow"})
+        groups.append({"params": [explorer.flow_mu], "lr": (lr_flow if lr_flow > 0.0 else lr) * sf**power,
+                       "std_of": "flow", "std_power": power})
         if sigma_lr > 0.0:
             groups.append({"params": [explorer.log_sigma_flow], "lr": sigma_lr})
-    return torch.optim.Adam(groups)
+    return torch.optim.Adam(groups) if kind == "adam" else torch.optim.SGD(groups)
 
 
 def follow_sigma(explorer: ParamExploration, optimizer: torch.optim.Optimizer, lr: float,
                  lr_flow: float = 0.0) -> None:
     """Set the mean's step of each group to ``lr`` (the flow's: ``lr_flow`` if > 0) times the group's
-    current std (``param_step=current``).
+    current std (``param_step=current``; its square with ``sgd``, ``make_param_optimizer``).
 
     With a step fixed at the initial std, a decayed exploration makes every update move the mean by
     several of its current stds (approx_kl 1.5-8 per update late in a gear run, from 0.1-0.8 early):
@@ -289,7 +303,7 @@ def follow_sigma(explorer: ParamExploration, optimizer: torch.optim.Optimizer, l
             which = group.get("std_of")
             if which is not None and std[which].numel():
                 step = lr_flow if which == "flow" and lr_flow > 0.0 else lr
-                group["lr"] = step * float(torch.exp(std[which]).mean())
+                group["lr"] = step * float(torch.exp(std[which]).mean()) ** group.get("std_power", 1)
 
 
 def param_ppo_update(

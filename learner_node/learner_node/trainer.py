@@ -76,7 +76,7 @@ NF_ONLY = frozenset({"n_flow", "n_hidden", "activation", "flow_init", "stiffness
                      "param_sigma_lr", "param_sigma_decay", "param_flow",
                      "flow_input_scale", "param_step",
                      "param_lr_flow", "param_ratio", "param_flow_dim", "param_adv_scale",
-                     "param_spread_signal"})
+                     "param_spread_signal", "param_optimizer"})
 TIMING_KEYS = ("rollout_seconds", "update_seconds", "wall_seconds")
 
 
@@ -215,7 +215,8 @@ class Trainer:
         cfg = self.cfg
         self.explorer = ParamExploration(self.policy, cfg.param_sigma_gains, cfg.param_sigma_flow,
                                          cfg.flow_input_scale, cfg.param_flow, cfg.param_flow_dim, cfg.seed)
-        self.optimizer = make_param_optimizer(self.explorer, cfg.param_lr, cfg.param_sigma_lr, cfg.param_lr_flow)
+        self.optimizer = make_param_optimizer(self.explorer, cfg.param_lr, cfg.param_sigma_lr, cfg.param_lr_flow,
+                                              cfg.param_optimizer)
 
     # ------------------------------------------------------------------ one iteration
     def episode_seeds(self) -> list[tuple[int, int]]:
@@ -550,7 +551,8 @@ class Trainer:
                                                else "")) if kept else "this config's: the checkpoint has none"
                 out.append(f"{label} std {float(torch.exp(mine).mean()):.3g} ({whose})")
         cfg = self.cfg  # the optimiser's steps follow the stds (make_param_optimizer)
-        self.optimizer = make_param_optimizer(self.explorer, cfg.param_lr, cfg.param_sigma_lr, cfg.param_lr_flow)
+        self.optimizer = make_param_optimizer(self.explorer, cfg.param_lr, cfg.param_sigma_lr, cfg.param_lr_flow,
+                                              cfg.param_optimizer)
         return out
 
     def resume_or_init(self, fresh: bool = False) -> str | None:
