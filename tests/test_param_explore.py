@@ -91,7 +91,7 @@ def test_sgd_moves_the_coordinate_the_returns_follow_and_leaves_the_others():
     noise); the search-gradient step (sgd) moves S_z as far and the five others far less."""
     moved = {}
     for kind, lr in (("adam", 0.1), ("sgd", 0.5)):
-        policy, explorer = _policy()
+        _, explorer = _policy()
         opt = make_param_optimizer(explorer, lr, 0.0, kind=kind)
         rng = np.random.default_rng(5)
         start = explorer.mean().detach().numpy().copy()
