@@ -108,8 +108,8 @@ def test_a_runner_stops_cleanly_on_any_stop_signal_even_started_with_sigint_igno
     ignored, and SIGTERM used to end the runner alone, leaving its children running: stop_on_signals makes
     each of them a KeyboardInterrupt, the path that stops the children and writes the summary."""
     code = ("import time\nfrom nf_bringup.processes import stop_on_signals\nstop_on_signals()\n"
-            "print('ready', flush=True)\ntry:\n    time.sleep(60)\nexcept KeyboardInterrupt as exc:\n"
-            "    print('stopped', exc, flush=True)\n")
+            "try:\n    print('ready', flush=True)\n    time.sleep(60)\nexcept KeyboardInterrupt as exc:\n"
+            "    print('stopped', exc, flush=True)\n")  # 'ready' inside the try: the signal may come at once
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     try:
