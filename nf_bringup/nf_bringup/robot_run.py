@@ -36,13 +36,13 @@ from nf_core.friction import OFF, FrictionRanges
 
 from .processes import ManagedProcess, allocate_domain_id, ros_env, stop_on_signals
 from .run_summary import plot_curves, write_summary
-from .stack import POLICY_READY, from_checkpoint_args, wait_for_recorder
+from .stack import POLICY_READY, from_checkpoint_args, recorder_ready, wait_for_recorder
 
 # The learner starts once the recorder records these: the Franka stack's controller is composed with
 # its driver and publishes no effort_controller/commands (the driver's joint_states carry the torque),
 # so waiting for that topic as make run does cost every robot run 120 s before it began.
 ROBOT_RECORDED_BEFORE_LEARNING = ("/joint_states", "/rollouts")
-ROBOT_RECORDER_READY = tuple(f"recording {t} (" for t in ROBOT_RECORDED_BEFORE_LEARNING)
+ROBOT_RECORDER_READY = recorder_ready(("",), ROBOT_RECORDED_BEFORE_LEARNING)
 
 FRANKY = "franky"
 FRANKY_GOAL = (0.5, 0.0, 0.05)  # the gear cell's goal on franky-sim: 2 cm below the shaft's mouth (0.07 m)

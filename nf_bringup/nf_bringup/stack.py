@@ -60,9 +60,9 @@ def arm_namespaces(arms: int) -> list[str]:
     return [f"/arm{i}" for i in range(arms)] if arms > 0 else [""]
 
 
-def recorder_ready(namespaces: Sequence[str]) -> tuple[str, ...]:
-    """The recorder's lines to wait for before the learner starts: every arm's ``RECORDED_BEFORE_LEARNING``."""
-    return tuple(f"recording {ns}{t} (" for ns in namespaces for t in RECORDED_BEFORE_LEARNING)
+def recorder_ready(namespaces: Sequence[str], topics: Sequence[str] = RECORDED_BEFORE_LEARNING) -> tuple[str, ...]:
+    """The recorder's lines to wait for before the learner starts: every arm's ``topics``."""
+    return tuple(f"recording {ns}{t} (" for ns in namespaces for t in topics)
 
 
 def policy_ready(namespaces: Sequence[str]) -> tuple[str, ...]:
