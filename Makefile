@@ -10,10 +10,8 @@ setup:  ## create .venv, install pinned packages, build ros2_ws, write env.sh (i
 lint: setup  ## ruff over the whole tree
 	@$(ENV) && ruff check .
 
-test: setup  ## set up if needed, then lint and the full test suite
-	@$(ENV) && ruff check . && status=0 \
-	  && { python -m pytest -n 2 -m "not timing" || status=$$?; } \
-	  && { python -m pytest -m timing || status=$$?; } && exit $$status  # two workers, then the timing tests alone
+test: setup  ## set up if needed, then lint and the full test suite (two workers, then the timing tests alone; a recap of failures last)
+	@$(ENV) && scripts/test.sh
 
 bench: setup bench-deps  ## speed benchmarks; JSON results in bench/results/
 	@$(ENV) && python bench/run_all.py
