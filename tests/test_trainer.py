@@ -375,6 +375,18 @@ def test_eval_every_evaluates_the_deterministic_controller_between_iterations_wi
     assert rows[0]["eval_success"] == "nan" and rows[1]["eval_success"] != "nan"
 
 
+def test_a_run_resumed_with_periodic_evaluations_keeps_writing_its_metrics(tmp_path):
+    """Resumed with ``eval_every`` on, a run's later rows have columns its first rows lack: metrics.csv
+    gets them all (blank where a row has none), where it used to stop the run with a ValueError."""
+    sets = [f"--set={k}={v}" for k, v in TINY.items() if k not in ("task", "iterations")]
+    cli = ["--task", "block", "--no-progress", "--no-prior-eval", "--no-eval", *sets, "--out", str(tmp_path)]
+    assert train_main([*cli, "--iterations", "1"]) == 0
+    assert train_main([*cli, "--iterations", "2", "--set", "eval_every=1"]) == 0
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    assert [r["iteration"] for r in rows] == ["1.0", "2.0"]
+    assert rows[0]["eval_success"] == "" and math.isfinite(float(rows[1]["eval_success"]))
+
+
 def test_periodic_evaluations_give_the_mean_over_seeds_where_they_ran():
     from learner_node.analysis.plots import periodic_evaluations
 

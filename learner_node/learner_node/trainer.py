@@ -601,11 +601,11 @@ class Trainer:
         """``metrics.csv`` and ``metrics.json`` in the output directory (rewritten from the history)."""
         if self.out_dir is None or not self.history:
             return
-        keys = list(self.history[0])
+        keys = list(dict.fromkeys(k for row in self.history for k in row))  # a resumed run may add columns
         _atomic_write(self.out_dir / "metrics.json", json.dumps(self.history, indent=1, default=_json_float))
         tmp = self.out_dir / "metrics.csv.tmp"
         with tmp.open("w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=keys)
+            writer = csv.DictWriter(fh, fieldnames=keys, restval="")
             writer.writeheader()
             writer.writerows(self.history)
         os.replace(tmp, self.out_dir / "metrics.csv")
