@@ -253,3 +253,34 @@ def test_running_advantage_scale_shrinks_small_differences():
     assert np.sqrt(np.mean(scaled[0::2] ** 2)) < 0.2
     state = explorer.state_dict()
     assert float(state["adv_rms_count"]) == 2.0  # in the checkpoint: a resumed run scales the same
+
+
+def _outcomes(draws: list[bool], mean: bool | None) -> list:
+    """Episodes as the settle rule sees them: success flags of the draws, then the mean's rollout."""
+    from types import SimpleNamespace
+    return [SimpleNamespace(final_success=s) for s in draws] + [None if mean is None else SimpleNamespace(
+        final_success=mean)]
+
+
+def test_spread_settles_only_once_the_mean_succeeds_and_the_draws_do_not(tmp_path):
+    trainer = Trainer(TrainConfig(**{**TINY, "param_sigma_settle": 0.8, "param_settle_success": 0.75}), tmp_path)
+    assert trainer.settle_factor(_outcomes([True, False, True, False], mean=True)) == 0.8  # spread fails
+    assert trainer.settle_factor(_outcomes([True, True, True, True], mean=True)) == 1.0  # draws succeed
+    assert trainer.settle_factor(_outcomes([False] * 4, mean=False)) == 1.0  # the mean has not arrived
+    assert trainer.settle_factor(_outcomes([True, False, False, False], mean=None)) == 1.0  # its rollout failed
+    off = Trainer(TrainConfig(**TINY), tmp_path / "off")
+    assert off.settle_factor(_outcomes([False] * 4, mean=True)) == 1.0  # off by default
+    fixed = Trainer(TrainConfig(**{**TINY, "param_sigma_settle": 0.8, "param_settle_success": 1.0,
+                                   "param_sigma_lr": 0.0}), tmp_path / "fixed")
+    before = fixed.explorer.sigma().detach().clone()
+    fixed.run(evaluate=False)
+    settled = [row["param_settled"] for row in fixed.history]
+    assert len(settled) == 2 and set(settled) <= {0.0, 1.0}
+    torch.testing.assert_close(fixed.explorer.sigma().detach(), before * 0.8 ** sum(settled))  # only when flagged
+
+
+def test_settling_needs_the_mean_rollout():
+    with pytest.raises(ValueError, match="odd rollouts_per_iter"):
+        TrainConfig(**{**TINY, "rollouts_per_iter": 4, "param_sigma_settle": 0.8})
+    with pytest.raises(ValueError, match="param_sigma_settle"):
+        TrainConfig(**{**TINY, "param_sigma_settle": 0.0})

@@ -155,6 +155,13 @@ class TrainConfig:
     param_sigma_decay: float = 1.0
     """exploration=params: factor on the exploration stds after every update (1: none), so the rollouts
     come closer to the learned controller as training goes on."""
+    param_sigma_settle: float = 1.0
+    """exploration=params: an extra factor on the exploration stds after an update whose rollout of the mean
+    itself (the odd last rollout) succeeded while fewer than ``param_settle_success`` of the draws did
+    (1: off). Once the mean inserts, the draws that fail are only spread: they narrow at this rate then,
+    and not before (a faster plain decay narrows them before the mean has arrived)."""
+    param_settle_success: float = 0.9
+    """exploration=params: the draws' success rate below which ``param_sigma_settle`` applies."""
     mlp_hidden: int = 64
     """MLP policy: units per hidden layer (two hidden layers)."""
     mlp_activation: str = "tanh"
@@ -289,6 +296,12 @@ class TrainConfig:
         _non_negative("param_sigma_lr", self.param_sigma_lr)
         if not 0.0 < self.param_sigma_decay <= 1.0:
             raise ValueError(f"param_sigma_decay must be in (0, 1], got {self.param_sigma_decay}")
+        if not 0.0 < self.param_sigma_settle <= 1.0:
+            raise ValueError(f"param_sigma_settle must be in (0, 1], got {self.param_sigma_settle}")
+        if not 0.0 <= self.param_settle_success <= 1.0:
+            raise ValueError(f"param_settle_success must be in [0, 1], got {self.param_settle_success}")
+        if self.param_sigma_settle < 1.0 and self.rollouts_per_iter % 2 == 0:
+            raise ValueError("param_sigma_settle needs an odd rollouts_per_iter: the last rollout runs the mean")
         if self.exploration == "params" and self.gains == "fixed" and self.param_sigma_flow == 0.0:
             raise ValueError("exploration=params needs something to explore: gains=learned or param_sigma_flow > 0")
         _positive("sigma_init", self.sigma_init)

@@ -76,7 +76,7 @@ NF_ONLY = frozenset({"n_flow", "n_hidden", "activation", "flow_init", "stiffness
                      "param_sigma_lr", "param_sigma_decay", "param_flow",
                      "flow_input_scale", "param_step",
                      "param_lr_flow", "param_ratio", "param_flow_dim", "param_adv_scale",
-                     "param_spread_signal", "param_optimizer"})
+                     "param_spread_signal", "param_optimizer", "param_sigma_settle", "param_settle_success"})
 TIMING_KEYS = ("rollout_seconds", "update_seconds", "wall_seconds")
 
 
@@ -302,6 +302,7 @@ class Trainer:
                 raise ValueError("params exploration: update() needs the episodes of episode_plan(), in order")
             if self.cfg.param_step == "current":
                 follow_sigma(self.explorer, self.optimizer, self.cfg.param_lr, self.cfg.param_lr_flow)
+            episodes_in = list(episodes)
             returns = np.array([np.nan if e is None else e.episode_return for e in episodes])
             adv = paired_advantages(returns, normalize=False)
             scale = self.explorer.running_scale(adv) if self.cfg.param_adv_scale == "running" else pair_rms(adv)
@@ -315,6 +316,10 @@ class Trainer:
             stats = param_ppo_update(self.explorer, self.optimizer, self._pending, adv, self.cfg.update_epochs,
                                      self.cfg.clip_coef, self.cfg.update_target_kl, self.cfg.param_ratio == "group")
             self.explorer.decay(self.cfg.param_sigma_decay)
+            settle = self.settle_factor(episodes_in)
+            self.explorer.decay(settle)
+            if self.cfg.param_sigma_settle < 1.0:
+                stats["param_settled"] = float(settle < 1.0)
             self._pending = None
             decisions = sum(len(e.reward) for e in episodes)
         else:
@@ -338,6 +343,17 @@ class Trainer:
             row.update(dict.fromkeys(EVAL_COLUMNS, math.nan))
         self.history.append(row)
         return row
+
+    def settle_factor(self, episodes: list[EpisodeRecord | None]) -> float:
+        """``param_sigma_settle`` if this iteration's rollout of the mean (the odd last one) succeeded while
+        fewer than ``param_settle_success`` of the draws (the pairs) did, else 1."""
+        factor = self.cfg.param_sigma_settle
+        if factor >= 1.0 or len(episodes) % 2 == 0 or episodes[-1] is None:
+            return 1.0
+        draws = [e.final_success for e in episodes[:-1] if e is not None]
+        if episodes[-1].final_success and draws and float(np.mean(draws)) < self.cfg.param_settle_success:
+            return factor
+        return 1.0
 
     def evaluation_due(self) -> bool:
         """Whether the iteration just completed is one of ``eval_every``'s (and evaluations are on)."""
