@@ -284,3 +284,20 @@ def test_settling_needs_the_mean_rollout():
         TrainConfig(**{**TINY, "rollouts_per_iter": 4, "param_sigma_settle": 0.8})
     with pytest.raises(ValueError, match="param_sigma_settle"):
         TrainConfig(**{**TINY, "param_sigma_settle": 0.0})
+
+
+def test_elite_step_moves_the_mean_to_the_succeeded_draws_only_when_the_mean_failed(tmp_path):
+    trainer = Trainer(TrainConfig(**{**TINY, "param_elite": "succeeded"}), tmp_path)
+    ex = trainer.explorer
+    theta, _ = ex.sample(5, np.random.default_rng(3))
+    trainer._pending = theta
+    before = ex.mean().detach().numpy().copy()
+    assert trainer.elite_step(_outcomes([False] * 4, mean=False)) == 0  # nothing inserted: PPO only
+    assert trainer.elite_step(_outcomes([True, False, False, False], mean=True)) == 0  # the mean already does
+    np.testing.assert_array_equal(ex.mean().detach().numpy(), before)
+    assert trainer.elite_step(_outcomes([True, False, False, True], mean=False)) == 2
+    np.testing.assert_allclose(ex.mean().detach().numpy(), 0.5 * (theta[0] + theta[3]))
+    S = trainer.policy.to_params().stiffness  # the controller the policy sends is the new mean
+    np.testing.assert_allclose(np.log(np.diag(S)), 0.5 * (theta[0] + theta[3])[: S.shape[0]])
+    with pytest.raises(ValueError, match="odd rollouts_per_iter"):
+        TrainConfig(**{**TINY, "rollouts_per_iter": 4, "param_elite": "succeeded"})

@@ -162,6 +162,11 @@ class TrainConfig:
     and not before (a faster plain decay narrows them before the mean has arrived)."""
     param_settle_success: float = 0.9
     """exploration=params: the draws' success rate below which ``param_sigma_settle`` applies."""
+    param_elite: str = "none"
+    """exploration=params: none (PPO's update only) | succeeded: after an update whose rollout of the mean
+    (the odd last one) failed while some draws succeeded, the mean moves to the average of the succeeded
+    draws (a cross-entropy step: one update goes where PPO's clipped trust region needs several). Any
+    draw is a stable controller, so the jump keeps every rollout stable."""
     mlp_hidden: int = 64
     """MLP policy: units per hidden layer (two hidden layers)."""
     mlp_activation: str = "tanh"
@@ -302,6 +307,10 @@ class TrainConfig:
             raise ValueError(f"param_settle_success must be in [0, 1], got {self.param_settle_success}")
         if self.param_sigma_settle < 1.0 and self.rollouts_per_iter % 2 == 0:
             raise ValueError("param_sigma_settle needs an odd rollouts_per_iter: the last rollout runs the mean")
+        if self.param_elite not in ("none", "succeeded"):
+            raise ValueError(f"param_elite must be none or succeeded, got {self.param_elite!r}")
+        if self.param_elite != "none" and self.rollouts_per_iter % 2 == 0:
+            raise ValueError("param_elite needs an odd rollouts_per_iter: the last rollout runs the mean")
         if self.exploration == "params" and self.gains == "fixed" and self.param_sigma_flow == 0.0:
             raise ValueError("exploration=params needs something to explore: gains=learned or param_sigma_flow > 0")
         _positive("sigma_init", self.sigma_init)

@@ -188,6 +188,18 @@ class ParamExploration(nn.Module):
         count = float(self.adv_rms_count)
         return float(self.adv_rms_sum) / count if count else 0.0
 
+    def set_mean(self, theta: np.ndarray) -> None:
+        """Move the mean to ``theta`` (dim,), in the explored coordinates (ln S, ln D, flow)."""
+        theta = np.asarray(theta, dtype=np.float64).reshape(-1)
+        if theta.shape != (self.dim,) or not np.all(np.isfinite(theta)):
+            raise ValueError(f"set_mean needs {self.dim} finite values, got shape {theta.shape}")
+        with torch.no_grad():
+            start = 0
+            for p in self.mean_parameters():
+                n = p.numel()
+                p.copy_(torch.from_numpy(theta[start : start + n]).reshape(p.shape).to(p.dtype))
+                start += n
+
     def decay(self, factor: float) -> None:
         """Multiply every exploration std by ``factor``."""
         if factor != 1.0:

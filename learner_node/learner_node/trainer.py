@@ -76,7 +76,8 @@ NF_ONLY = frozenset({"n_flow", "n_hidden", "activation", "flow_init", "stiffness
                      "param_sigma_lr", "param_sigma_decay", "param_flow",
                      "flow_input_scale", "param_step",
                      "param_lr_flow", "param_ratio", "param_flow_dim", "param_adv_scale",
-                     "param_spread_signal", "param_optimizer", "param_sigma_settle", "param_settle_success"})
+                     "param_spread_signal", "param_optimizer", "param_sigma_settle", "param_settle_success",
+                     "param_elite"})
 TIMING_KEYS = ("rollout_seconds", "update_seconds", "wall_seconds")
 
 
@@ -315,6 +316,8 @@ class Trainer:
                 raise ValueError("params exploration: every episode failed")
             stats = param_ppo_update(self.explorer, self.optimizer, self._pending, adv, self.cfg.update_epochs,
                                      self.cfg.clip_coef, self.cfg.update_target_kl, self.cfg.param_ratio == "group")
+            if self.cfg.param_elite != "none":
+                stats["param_elite"] = float(self.elite_step(episodes_in))
             self.explorer.decay(self.cfg.param_sigma_decay)
             settle = self.settle_factor(episodes_in)
             self.explorer.decay(settle)
@@ -343,6 +346,18 @@ class Trainer:
             row.update(dict.fromkeys(EVAL_COLUMNS, math.nan))
         self.history.append(row)
         return row
+
+    def elite_step(self, episodes: list[EpisodeRecord | None]) -> int:
+        """``param_elite`` succeeded: if this iteration's rollout of the mean (the odd last one) failed while some draws
+        succeeded, move the mean to the average of the succeeded draws; the number of them (0: no move)."""
+        if len(episodes) % 2 == 0 or episodes[-1] is None or episodes[-1].final_success:
+            return 0
+        won = [i for i, e in enumerate(episodes[:-1]) if e is not None and e.final_success]
+        if not won:
+            return 0
+        self.explorer.set_mean(np.mean(self._pending[won], axis=0))
+        self.explorer.sync_policy()
+        return len(won)
 
     def settle_factor(self, episodes: list[EpisodeRecord | None]) -> float:
         """``param_sigma_settle`` if this iteration's rollout of the mean (the odd last one) succeeded while
