@@ -301,3 +301,24 @@ def test_elite_step_moves_the_mean_to_the_succeeded_draws_only_when_the_mean_fai
     np.testing.assert_allclose(np.log(np.diag(S)), 0.5 * (theta[0] + theta[3])[: S.shape[0]])
     with pytest.raises(ValueError, match="odd rollouts_per_iter"):
         TrainConfig(**{**TINY, "rollouts_per_iter": 4, "param_elite": "succeeded"})
+
+
+def test_elite_by_returns_jumps_to_the_best_quarter_only_if_each_beat_the_mean(tmp_path):
+    from types import SimpleNamespace
+    trainer = Trainer(TrainConfig(**{**TINY, "param_elite": "returns", "rollouts_per_iter": 9}), tmp_path)
+    ex = trainer.explorer
+    theta, _ = ex.sample(9, np.random.default_rng(4))
+    trainer._pending = theta[:8]
+    before = ex.mean().detach().numpy().copy()
+
+    def eps(returns, mean_return):
+        return [SimpleNamespace(final_success=False, episode_return=r) for r in returns] + [
+            SimpleNamespace(final_success=False, episode_return=mean_return)]
+
+    # the best quarter (2 of 8) are -1 and -2; -2 does not beat the mean's -1.5: no jump
+    assert trainer.elite_step(eps([-5, -1, -9, -2, -7, -8, -6, -4], -1.5)) == 0
+    np.testing.assert_array_equal(ex.mean().detach().numpy(), before)
+    assert trainer.elite_step(eps([-5, -1, -9, -2, -7, -8, -6, -4], -3.0)) == 2
+    np.testing.assert_allclose(ex.mean().detach().numpy(), 0.5 * (theta[1] + theta[3]))
+    with pytest.raises(ValueError, match="param_elite must be"):
+        TrainConfig(**{**TINY, "param_elite": "best"})

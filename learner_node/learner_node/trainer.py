@@ -349,10 +349,18 @@ class Trainer:
 
     def elite_step(self, episodes: list[EpisodeRecord | None]) -> int:
         """``param_elite`` succeeded: if this iteration's rollout of the mean (the odd last one) failed while some draws
-        succeeded, move the mean to the average of the succeeded draws; the number of them (0: no move)."""
+        succeeded, move the mean to the average of the succeeded draws; ``returns`` also, when none succeeded, to the
+        average of the best quarter of the draws by return if each beat the mean's own return. The number of draws
+        averaged (0: no move)."""
         if len(episodes) % 2 == 0 or episodes[-1] is None or episodes[-1].final_success:
             return 0
         won = [i for i, e in enumerate(episodes[:-1]) if e is not None and e.final_success]
+        if not won and self.cfg.param_elite == "returns":
+            # none inserted: the best quarter of the draws by return, if each of them beat the mean's own rollout
+            draws = sorted(((e.episode_return, i) for i, e in enumerate(episodes[:-1]) if e is not None), reverse=True)
+            top = draws[:max(1, len(draws) // 4)]
+            if top and top[-1][0] > episodes[-1].episode_return:
+                won = [i for _, i in top]
         if not won:
             return 0
         self.explorer.set_mean(np.mean(self._pending[won], axis=0))
