@@ -253,6 +253,31 @@ def test_learner_goal_parameter_reaches_the_published_policy_over_dds(tmp_path):
         assert f"not starting: init_checkpoint {tmp_path / 'none.pt'}: no such file" in bad.log()
 
 
+def test_the_robot_runs_learner_takes_the_arm_settings_over_the_task_file(tmp_path):
+    """The learner command run_robot builds (make run-franka), run for real: config/franka_learn.yaml, the
+    second parameters file, sets the fixed-start step over gear_learn.yaml, whose other settings stay."""
+    from nf_bringup.robot_run import _parse, robot_commands
+
+    cfg = REPO / "config"
+    args = _parse([f"--config={cfg / 'gear_learn.yaml'}", f"--hardware-config={cfg / 'franka.yaml'}",
+                   f"--arm-settings={cfg / 'franka_learn.yaml'}", "--out", str(tmp_path / "run")])
+    learner = robot_commands(args, tmp_path / "run", record=False)["learner"]
+    domain = allocate_domain_id()
+    with RosProcess([*learner[1:], "-p", "learner_node:server_timeout:=60.0"], domain, tmp_path / "learner.log") as lrn:
+        config = tmp_path / "run" / "learner" / "config.json"
+        probe = Probe(domain)
+        try:
+            assert probe.spin_until(config.exists, 90), lrn.log()
+        finally:
+            probe.close()
+        written = json.loads(config.read_text())
+    expected = TrainConfig.from_sources(cfg / "gear_learn.yaml")
+    assert (written["param_elite"], written["param_sigma_settle"]) == ("succeeded", 0.5)
+    assert (expected.param_elite, expected.param_sigma_settle) == ("none", 1.0)  # not the task file's
+    for key in ("potential_force_bound", "rollouts_per_iter", "param_sigma_gains", "stiffness", "task"):
+        assert written[key] == expected.to_dict()[key], key
+
+
 def test_learner_killed_mid_iteration_holds_the_arm_and_resumes_without_losing_an_iteration(tmp_path):
     domain = allocate_domain_id()
     # The kill must land inside iteration 2, so an iteration has to outlast the probe's reaction on a

@@ -16,7 +16,8 @@ from nf_bringup.robot_run import FRANKY_GOAL, Progress, _parse, robot_commands
 from nf_bringup.run_summary import write_summary
 
 CONFIGS = [f"--config={Path(__file__).resolve().parents[1] / 'config' / 'gear_learn.yaml'}",
-           f"--hardware-config={Path(__file__).resolve().parents[1] / 'config' / 'franka.yaml'}"]
+           f"--hardware-config={Path(__file__).resolve().parents[1] / 'config' / 'franka.yaml'}",
+           f"--arm-settings={Path(__file__).resolve().parents[1] / 'config' / 'franka_learn.yaml'}"]
 
 
 def _value(argv: list[str], key: str) -> str:
@@ -120,3 +121,26 @@ def test_a_runner_stops_cleanly_on_any_stop_signal_even_started_with_sigint_igno
         if proc.poll() is None:
             proc.kill()
     assert out.strip() == f"stopped {sig.name}" and proc.returncode == 0
+
+
+def test_the_arm_settings_reach_the_learner_after_the_task_file_from_scratch_only(tmp_path, capsys):
+    """config/franka_learn.yaml (the fixed-start step) is the learner's second parameters file, so it wins
+    over the task file; --from-checkpoint (fine-tuning, measured without it) and --arm-settings none leave
+    it out; a file that would set other nodes' parameters is refused before anything starts."""
+    arm_settings = Path(__file__).resolve().parents[1] / "config" / "franka_learn.yaml"
+    args = _parse([*CONFIGS, "--out", str(tmp_path)])
+    learner = robot_commands(args, tmp_path, record=False)["learner"]
+    files = [learner[i + 1] for i, a in enumerate(learner) if a == "--params-file"]
+    assert files == [CONFIGS[0].split("=", 1)[1], str(arm_settings)]
+    none = robot_commands(_parse([*CONFIGS, "--arm-settings", "none", "--out", "x"]), tmp_path, record=False)
+    assert none["learner"].count("--params-file") == 1
+    (tmp_path / "sim.pt").write_bytes(b"")
+    tuned = _parse([*CONFIGS, "--out", "x", "--from-checkpoint", str(tmp_path / "sim.pt")])
+    assert robot_commands(tuned, tmp_path, record=False)["learner"].count("--params-file") == 1
+    other = tmp_path / "other.yaml"
+    other.write_text("/**:\n  ros__parameters:\n    potential_force_bound: 0.0\n")
+    with pytest.raises(SystemExit):
+        _parse([*CONFIGS, f"--arm-settings={other}", "--out", "x"])
+    assert "need one section, learner_node" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        _parse([*CONFIGS, f"--arm-settings={tmp_path / 'missing.yaml'}", "--out", "x"])

@@ -13,6 +13,10 @@ recover reflexes by itself; on a real arm a reflex or a safe hold waits for a pe
 says so and goes on once ``clear_fault`` is called). Ctrl-C stops everything cleanly; the same
 ``--out`` again resumes from the checkpoint. Each iteration prints the time left.
 
+The learner reads the task file (``--config``, config/gear_learn.yaml) and, from scratch, the arm
+settings over it (``--arm-settings``, config/franka_learn.yaml: the cross-entropy step and the settling
+spread for an arm's one start; ``none`` leaves them out).
+
 ``--from-checkpoint PATH`` starts the learner from a policy learned elsewhere (a simulation run's
 ``checkpoint.pt``; the learner's ``init_checkpoint``): its flow, S, D and exploration spread with this
 cell's goal, a fresh iteration count. The prior evaluated before iteration 1 is then that policy on
@@ -46,8 +50,10 @@ ROBOT_RECORDER_READY = recorder_ready(("",), ROBOT_RECORDED_BEFORE_LEARNING)
 
 FRANKY = "franky"
 FRANKY_GOAL = (0.5, 0.0, 0.05)  # the gear cell's goal on franky-sim: 2 cm below the shaft's mouth (0.07 m)
-DEFAULT_ITERATIONS = 20  # about 100 s each on franky-sim (15 x 5 s episodes and the reset motions)
+DEFAULT_ITERATIONS = 15  # about 100 s each on franky-sim (15 x 5 s episodes and the reset motions); window 9-12
 HARDWARE_CONFIG = Path("config/franka.yaml")
+ARM_SETTINGS = Path("config/franka_learn.yaml")  # the learner's settings for an arm's one start, over the task file
+NONE = "none"
 _ITERATION = re.compile(r"iteration\s+(\d+)/(\d+)")
 _ROLLOUTS = re.compile(r"rollouts\s+([\d.]+) s")
 
@@ -94,6 +100,7 @@ def robot_commands(args: argparse.Namespace, run_dir: Path, record: bool) -> dic
     # hardware file (its own on purpose: franka.yaml) does not carry
     arm += ["-p", f"nf_controller:potential_force_bound:={task_force_bound(args.config)!r}"]
     learner = [py, "-m", "learner_node.node", "--ros-args", "--params-file", str(args.config),
+               *(["--params-file", str(args.arm_settings)] if arm_settings_apply(args) else []),
                "-p", f"learner_node:goal:={goal}", "-p", f"learner_node:out_dir:={run_dir / 'learner'}",
                "-p", f"learner_node:iterations:={args.iterations}",
                "-p", f"learner_node:on_safe_hold:={'auto' if franky else 'wait'}",
@@ -103,6 +110,22 @@ def robot_commands(args: argparse.Namespace, run_dir: Path, record: bool) -> dic
     if record:
         cmds["recorder"] = [py, "-m", "nf_bags.record", "-o", str(run_dir / "bag")]
     return cmds
+
+
+def arm_settings_apply(args: argparse.Namespace) -> bool:
+    """Whether the learner gets ``--arm-settings`` over the task file: from scratch, not from a checkpoint
+    (fine-tuning a simulation policy was measured with the task file alone) and not with ``none``."""
+    return str(args.arm_settings) != NONE and args.from_checkpoint is None
+
+
+def learner_only(path: Path) -> str:
+    """Why ``path`` cannot be the arm settings ("" if it can): it must hold a ``learner_node`` section only,
+    or it would change the other nodes' parameters behind the task file."""
+    doc = yaml.safe_load(path.read_text())
+    node = doc.get("learner_node") if isinstance(doc, dict) and set(doc) == {"learner_node"} else None
+    if not isinstance(node, dict) or not isinstance(node.get("ros__parameters"), dict):
+        return f"{path}: the arm settings need one section, learner_node: ros__parameters: ..."
+    return ""
 
 
 def task_shared(config: Path) -> dict:
@@ -144,6 +167,9 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
                              "measure it)")
     parser.add_argument("--config", type=Path, default=Path("config/gear_learn.yaml"), help="the task file")
     parser.add_argument("--hardware-config", type=Path, default=HARDWARE_CONFIG, help="the Franka stack's file")
+    parser.add_argument("--arm-settings", type=Path, default=ARM_SETTINGS,
+                        help="the learner's settings for an arm's one start, over the task file (from scratch "
+                             "only; 'none': the task file alone)")
     parser.add_argument("--iterations", type=int, default=DEFAULT_ITERATIONS, help="PPO iterations")
     parser.add_argument("--out", type=Path, default=None, help="run folder (default runs/robot-<date-time>)")
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: from the environment)")
@@ -159,6 +185,12 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
         if not path.exists():
             parser.error(f"no such parameters file: {path}")
         yaml.safe_load(path.read_text())  # a broken file fails here, before anything moves
+    if arm_settings_apply(args):
+        if not args.arm_settings.exists():
+            parser.error(f"no such parameters file: {args.arm_settings} (--arm-settings none: the task file alone)")
+        problem = learner_only(args.arm_settings)
+        if problem:
+            parser.error(problem)
     problem = simulated_friction(args.config)
     if problem:
         parser.error(problem)
@@ -192,6 +224,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"[run] run folder {run_dir}, ROS_DOMAIN_ID {domain_id} (loopback only); robot "
           f"{'franky-sim (gear cell)' if franky else args.robot}, goal {args.goal}; {args.iterations} iterations"
           + (f"; the learner starts from {args.from_checkpoint}" if args.from_checkpoint else "")
+          + (f"; learner settings {args.config} + {args.arm_settings}" if arm_settings_apply(args) else "")
           + "; Ctrl-C stops cleanly, the same --out resumes", flush=True)
     sim = None
     procs: dict[str, ManagedProcess] = {}
@@ -233,8 +266,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     wall = time.monotonic() - t0
     plot_curves(run_dir / "learner" / "metrics.json", run_dir / "learning_curves.png",
                 f"NF-PPO on the robot path: {'franky-sim' if franky else args.robot}")
-    summary = write_summary(run_dir, args.config, wall, code,
-                            how=f"the Franka stack on {'franky-sim' if franky else args.robot}, real time")
+    how = f"the Franka stack on {'franky-sim' if franky else args.robot}, real time"
+    if arm_settings_apply(args):
+        how += f", learner settings of {args.arm_settings} over it"
+    summary = write_summary(run_dir, args.config, wall, code, how=how)
     print(f"[run] done in {wall / 60:.1f} min; summary: {summary}", flush=True)
     return 130 if interrupted else (code if code is not None else 1)
 
