@@ -125,6 +125,9 @@ def test_an_arm_killed_mid_episode_costs_one_episode_not_the_iteration(tmp_path)
     arms = [arm_stack(domain, f"/arm{i}", config, tmp_path) for i in range(4)]
     run = tmp_path / "run"
     try:
+        # the probe hears arm2 before the learner starts: a fresh clone once finished arm2's only episode
+        # while discovery still matched the probe, and the kill never came
+        assert probe.spin_until(lambda: bool(status), 120), arms[2].log()
         lrn = learner(domain, run, tmp_path / "learner.log", config, {**settings, "arm_timeout": 3.0})
         running = ControllerStatus.MODE_RUNNING
         assert probe.spin_until(lambda: status and status[-1][1].mode == running, 120), lrn.log()
