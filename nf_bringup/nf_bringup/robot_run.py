@@ -191,6 +191,12 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
         problem = learner_only(args.arm_settings)
         if problem:
             parser.error(problem)
+        from learner_node.config import TrainConfig, read_yaml_params
+
+        try:  # the learner's own check of the two files together: a typo fails here, before anything moves
+            TrainConfig.from_sources(args.config, read_yaml_params(args.arm_settings))
+        except (TypeError, ValueError) as exc:
+            parser.error(f"{args.arm_settings} over {args.config}: {exc}")
     problem = simulated_friction(args.config)
     if problem:
         parser.error(problem)
