@@ -322,3 +322,27 @@ def test_elite_by_returns_jumps_to_the_best_quarter_only_if_each_beat_the_mean(t
     np.testing.assert_allclose(ex.mean().detach().numpy(), 0.5 * (theta[1] + theta[3]))
     with pytest.raises(ValueError, match="param_elite must be"):
         TrainConfig(**{**TINY, "param_elite": "best"})
+
+
+def test_minority_elite_keeps_the_mean_on_the_rollouts_that_succeeded_while_they_are_few(tmp_path):
+    trainer = Trainer(TrainConfig(**{**TINY, "param_elite": "minority", "rollouts_per_iter": 7}), tmp_path)
+    ex = trainer.explorer
+    theta, _ = ex.sample(7, np.random.default_rng(5))  # the last row is the mean itself
+    trainer._pending = theta
+    before = ex.mean().detach().numpy().copy()
+    assert trainer.elite_step(_outcomes([False] * 6, mean=False)) == 0  # nothing inserted: PPO only
+    assert trainer.elite_step(_outcomes([True, True, True, False, False, False], mean=True)) == 0  # 4 of 7: PPO
+    np.testing.assert_array_equal(ex.mean().detach().numpy(), before)
+    # only the mean inserted: PPO's step off it is undone
+    assert trainer.elite_step(_outcomes([False] * 6, mean=True)) == 1
+    np.testing.assert_allclose(ex.mean().detach().numpy(), theta[6])
+    # the mean and two draws beyond it: the mean moves to the three's average
+    assert trainer.elite_step(_outcomes([False, True, False, False, True, False], mean=True)) == 3
+    np.testing.assert_allclose(ex.mean().detach().numpy(), (theta[1] + theta[4] + theta[6]) / 3.0)
+    S = trainer.policy.to_params().stiffness  # the controller the policy sends is the new mean
+    np.testing.assert_allclose(np.log(np.diag(S)), ((theta[1] + theta[4] + theta[6]) / 3.0)[: S.shape[0]])
+    # a failed episode (None) counts in neither
+    outcomes = _outcomes([True, False, False, False, False, False], mean=False)
+    outcomes[2] = None
+    assert trainer.elite_step(outcomes) == 1
+    np.testing.assert_allclose(ex.mean().detach().numpy(), theta[0])

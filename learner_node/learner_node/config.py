@@ -167,7 +167,10 @@ class TrainConfig:
     (the odd last one) failed while some draws succeeded, the mean moves to the average of the succeeded
     draws (a cross-entropy step: one update goes where PPO's clipped trust region needs several) | returns: as
     succeeded, and while no draw succeeds, to the best quarter of the draws by return if each beat the mean's
-    own rollout. Any draw is a stable controller, so the jump keeps every rollout stable."""
+    own rollout | minority: after any update in which some rollouts succeeded but fewer than half, the mean's
+    own included, the mean moves to the average of the rollouts that succeeded (so a mean that inserts at the
+    edge of the gains that do is not moved off them by PPO's step, and moves inwards when draws beyond it
+    insert too). Any draw is a stable controller, so the jump keeps every rollout stable."""
     mlp_hidden: int = 64
     """MLP policy: units per hidden layer (two hidden layers)."""
     mlp_activation: str = "tanh"
@@ -308,8 +311,8 @@ class TrainConfig:
             raise ValueError(f"param_settle_success must be in [0, 1], got {self.param_settle_success}")
         if self.param_sigma_settle < 1.0 and self.rollouts_per_iter % 2 == 0:
             raise ValueError("param_sigma_settle needs an odd rollouts_per_iter: the last rollout runs the mean")
-        if self.param_elite not in ("none", "succeeded", "returns"):
-            raise ValueError(f"param_elite must be none, succeeded or returns, got {self.param_elite!r}")
+        if self.param_elite not in ("none", "succeeded", "returns", "minority"):
+            raise ValueError(f"param_elite must be none, succeeded, returns or minority, got {self.param_elite!r}")
         if self.param_elite != "none" and self.rollouts_per_iter % 2 == 0:
             raise ValueError("param_elite needs an odd rollouts_per_iter: the last rollout runs the mean")
         if self.exploration == "params" and self.gains == "fixed" and self.param_sigma_flow == 0.0:

@@ -350,9 +350,19 @@ class Trainer:
     def elite_step(self, episodes: list[EpisodeRecord | None]) -> int:
         """``param_elite`` succeeded: if this iteration's rollout of the mean (the odd last one) failed while some draws
         succeeded, move the mean to the average of the succeeded draws; ``returns`` also, when none succeeded, to the
-        average of the best quarter of the draws by return if each beat the mean's own return. The number of draws
-        averaged (0: no move)."""
-        if len(episodes) % 2 == 0 or episodes[-1] is None or episodes[-1].final_success:
+        average of the best quarter of the draws by return if each beat the mean's own return; ``minority``: whenever
+        some rollouts (the mean's included) succeeded but fewer than half, to the average of those. The number of
+        rollouts averaged (0: no move)."""
+        if len(episodes) % 2 == 0 or episodes[-1] is None:
+            return 0
+        if self.cfg.param_elite == "minority":
+            won = [i for i, e in enumerate(episodes) if e is not None and e.final_success]
+            if not won or 2 * len(won) >= sum(e is not None for e in episodes):
+                return 0
+            self.explorer.set_mean(np.mean(self._pending[won], axis=0))
+            self.explorer.sync_policy()
+            return len(won)
+        if episodes[-1].final_success:
             return 0
         won = [i for i, e in enumerate(episodes[:-1]) if e is not None and e.final_success]
         if not won and self.cfg.param_elite == "returns":
