@@ -346,3 +346,22 @@ def test_minority_elite_keeps_the_mean_on_the_rollouts_that_succeeded_while_they
     outcomes[2] = None
     assert trainer.elite_step(outcomes) == 1
     np.testing.assert_allclose(ex.mean().detach().numpy(), theta[0])
+
+
+def test_minority_with_returns_jumps_by_return_only_while_nothing_inserts(tmp_path):
+    from types import SimpleNamespace
+    trainer = Trainer(TrainConfig(**{**TINY, "param_elite": "minority_returns", "rollouts_per_iter": 9}), tmp_path)
+    ex = trainer.explorer
+    theta, _ = ex.sample(9, np.random.default_rng(6))
+    trainer._pending = theta
+
+    def eps(returns, mean_return, won=()):
+        return [SimpleNamespace(final_success=i in won, episode_return=r) for i, r in enumerate(returns)] + [
+            SimpleNamespace(final_success=False, episode_return=mean_return)]
+
+    returns = [-5, -1, -9, -2, -7, -8, -6, -4]
+    assert trainer.elite_step(eps(returns, -1.5)) == 0  # -2 of the best quarter does not beat the mean
+    assert trainer.elite_step(eps(returns, -3.0)) == 2  # none inserted: the best quarter by return
+    np.testing.assert_allclose(ex.mean().detach().numpy(), 0.5 * (theta[1] + theta[3]))
+    assert trainer.elite_step(eps(returns, -3.0, won=(6,))) == 1  # one inserted: it wins over any return
+    np.testing.assert_allclose(ex.mean().detach().numpy(), theta[6])

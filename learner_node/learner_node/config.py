@@ -170,7 +170,8 @@ class TrainConfig:
     own rollout | minority: after any update in which some rollouts succeeded but fewer than half, the mean's
     own included, the mean moves to the average of the rollouts that succeeded (so a mean that inserts at the
     edge of the gains that do is not moved off them by PPO's step, and moves inwards when draws beyond it
-    insert too). Any draw is a stable controller, so the jump keeps every rollout stable."""
+    insert too) | minority_returns: as minority, and while no rollout succeeds, as returns. Any draw is a
+    stable controller, so the jump keeps every rollout stable."""
     mlp_hidden: int = 64
     """MLP policy: units per hidden layer (two hidden layers)."""
     mlp_activation: str = "tanh"
@@ -311,8 +312,9 @@ class TrainConfig:
             raise ValueError(f"param_settle_success must be in [0, 1], got {self.param_settle_success}")
         if self.param_sigma_settle < 1.0 and self.rollouts_per_iter % 2 == 0:
             raise ValueError("param_sigma_settle needs an odd rollouts_per_iter: the last rollout runs the mean")
-        if self.param_elite not in ("none", "succeeded", "returns", "minority"):
-            raise ValueError(f"param_elite must be none, succeeded, returns or minority, got {self.param_elite!r}")
+        if self.param_elite not in ("none", "succeeded", "returns", "minority", "minority_returns"):
+            raise ValueError("param_elite must be none, succeeded, returns, minority or minority_returns, "
+                             f"got {self.param_elite!r}")
         if self.param_elite != "none" and self.rollouts_per_iter % 2 == 0:
             raise ValueError("param_elite needs an odd rollouts_per_iter: the last rollout runs the mean")
         if self.exploration == "params" and self.gains == "fixed" and self.param_sigma_flow == 0.0:

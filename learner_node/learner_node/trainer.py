@@ -351,31 +351,33 @@ class Trainer:
         """``param_elite`` succeeded: if this iteration's rollout of the mean (the odd last one) failed while some draws
         succeeded, move the mean to the average of the succeeded draws; ``returns`` also, when none succeeded, to the
         average of the best quarter of the draws by return if each beat the mean's own return; ``minority``: whenever
-        some rollouts (the mean's included) succeeded but fewer than half, to the average of those. The number of
-        rollouts averaged (0: no move)."""
+        some rollouts (the mean's included) succeeded but fewer than half, to the average of those;
+        ``minority_returns`` also, when none succeeded, as ``returns``. The number of rollouts averaged (0: no move)."""
         if len(episodes) % 2 == 0 or episodes[-1] is None:
             return 0
-        if self.cfg.param_elite == "minority":
+        mode = self.cfg.param_elite
+        if mode.startswith("minority"):
             won = [i for i, e in enumerate(episodes) if e is not None and e.final_success]
-            if not won or 2 * len(won) >= sum(e is not None for e in episodes):
+            if 2 * len(won) >= sum(e is not None for e in episodes):
                 return 0
-            self.explorer.set_mean(np.mean(self._pending[won], axis=0))
-            self.explorer.sync_policy()
-            return len(won)
-        if episodes[-1].final_success:
-            return 0
-        won = [i for i, e in enumerate(episodes[:-1]) if e is not None and e.final_success]
-        if not won and self.cfg.param_elite == "returns":
-            # none inserted: the best quarter of the draws by return, if each of them beat the mean's own rollout
-            draws = sorted(((e.episode_return, i) for i, e in enumerate(episodes[:-1]) if e is not None), reverse=True)
-            top = draws[:max(1, len(draws) // 4)]
-            if top and top[-1][0] > episodes[-1].episode_return:
-                won = [i for _, i in top]
+        else:
+            if episodes[-1].final_success:
+                return 0
+            won = [i for i, e in enumerate(episodes[:-1]) if e is not None and e.final_success]
+        if not won and mode in ("returns", "minority_returns"):
+            won = self._better_by_return(episodes)
         if not won:
             return 0
         self.explorer.set_mean(np.mean(self._pending[won], axis=0))
         self.explorer.sync_policy()
         return len(won)
+
+    @staticmethod
+    def _better_by_return(episodes: list[EpisodeRecord | None]) -> list[int]:
+        """The best quarter of the draws by return if each of them beat the mean's own rollout (the last), else none."""
+        draws = sorted(((e.episode_return, i) for i, e in enumerate(episodes[:-1]) if e is not None), reverse=True)
+        top = draws[:max(1, len(draws) // 4)]
+        return [i for _, i in top] if top and top[-1][0] > episodes[-1].episode_return else []
 
     def settle_factor(self, episodes: list[EpisodeRecord | None]) -> float:
         """``param_sigma_settle`` if this iteration's rollout of the mean (the odd last one) succeeded while
