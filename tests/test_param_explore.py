@@ -279,6 +279,21 @@ def test_spread_settles_only_once_the_mean_succeeds_and_the_draws_do_not(tmp_pat
     torch.testing.assert_close(fixed.explorer.sigma().detach(), before * 0.8 ** sum(settled))  # only when flagged
 
 
+def test_batch_rule_settles_once_most_rollouts_succeed_and_not_all(tmp_path):
+    """param_settle_rule=batch (random starts): the whole batch's success rate decides, not the mean's rollout."""
+    trainer = Trainer(TrainConfig(**{**TINY, "param_sigma_settle": 0.8, "param_settle_rule": "batch",
+                                     "param_settle_from": 0.6}), tmp_path)
+    assert trainer.settle_factor(_outcomes([True, True, True, False], mean=False)) == 0.8  # 3 of 5
+    assert trainer.settle_factor(_outcomes([True, False, False, False], mean=True)) == 1.0  # 2 of 5: not yet
+    assert trainer.settle_factor(_outcomes([True] * 4, mean=True)) == 1.0  # every rollout inserts
+    assert trainer.settle_factor(_outcomes([True, True, True], mean=None)) == 1.0  # 3 of 3 that ran
+    assert trainer.settle_factor(_outcomes([True, False, True], mean=None)) == 0.8  # 2 of 3 that ran
+    with pytest.raises(ValueError, match="param_settle_rule"):
+        TrainConfig(**{**TINY, "param_settle_rule": "median"})
+    with pytest.raises(ValueError, match="param_settle_from"):
+        TrainConfig(**{**TINY, "param_settle_from": 1.5})
+
+
 def test_settling_needs_the_mean_rollout():
     with pytest.raises(ValueError, match="odd rollouts_per_iter"):
         TrainConfig(**{**TINY, "rollouts_per_iter": 4, "param_sigma_settle": 0.8})
@@ -346,6 +361,29 @@ def test_minority_elite_keeps_the_mean_on_the_rollouts_that_succeeded_while_they
     outcomes[2] = None
     assert trainer.elite_step(outcomes) == 1
     np.testing.assert_allclose(ex.mean().detach().numpy(), theta[0])
+
+
+def test_jump_onto_succeeded_rollouts_narrows_the_spread_and_a_jump_by_return_does_not(tmp_path):
+    """param_sigma_jump: the stds shrink by its factor when the elite step lands on rollouts that inserted."""
+    from types import SimpleNamespace
+    trainer = Trainer(TrainConfig(**{**TINY, "param_elite": "minority_returns", "param_sigma_jump": 0.3,
+                                     "rollouts_per_iter": 9}), tmp_path)
+    ex = trainer.explorer
+    trainer._pending, _ = ex.sample(9, np.random.default_rng(6))
+    sigma = ex.sigma().detach().clone()
+
+    def eps(won=()):
+        return [SimpleNamespace(final_success=i in won, episode_return=float(i)) for i in range(8)] + [
+            SimpleNamespace(final_success=False, episode_return=-1.0)]
+
+    assert trainer.elite_step(eps()) == 2  # by return: the spread stays
+    torch.testing.assert_close(ex.sigma().detach(), sigma)
+    assert trainer.elite_step(eps(won=(2, 5))) == 2  # onto two that inserted: narrowed once
+    torch.testing.assert_close(ex.sigma().detach(), sigma * 0.3)
+    assert trainer.elite_step(eps(won=tuple(range(6)))) == 0  # most inserted: no step, no narrowing
+    torch.testing.assert_close(ex.sigma().detach(), sigma * 0.3)
+    with pytest.raises(ValueError, match="param_sigma_jump"):
+        TrainConfig(**{**TINY, "param_sigma_jump": 0.0})
 
 
 def test_minority_with_returns_jumps_by_return_only_while_nothing_inserts(tmp_path):

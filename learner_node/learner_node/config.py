@@ -162,6 +162,12 @@ class TrainConfig:
     and not before (a faster plain decay narrows them before the mean has arrived)."""
     param_settle_success: float = 0.9
     """exploration=params: the draws' success rate below which ``param_sigma_settle`` applies."""
+    param_settle_rule: str = "mean"
+    """exploration=params: when ``param_sigma_settle`` applies. mean: the mean's own rollout succeeded (a fixed
+    start: that rollout says the mean has arrived) | batch: the whole batch's success rate is at least
+    ``param_settle_from`` (random starts: one rollout of the mean from its own start says little)."""
+    param_settle_from: float = 0.6
+    """exploration=params, ``param_settle_rule`` batch: the batch success rate from which the spread settles."""
     param_elite: str = "none"
     """exploration=params: none (PPO's update only) | succeeded: after an update whose rollout of the mean
     (the odd last one) failed while some draws succeeded, the mean moves to the average of the succeeded
@@ -172,6 +178,10 @@ class TrainConfig:
     edge of the gains that do is not moved off them by PPO's step, and moves inwards when draws beyond it
     insert too) | minority_returns: as minority, and while no rollout succeeds, as returns. Any draw is a
     stable controller, so the jump keeps every rollout stable."""
+    param_sigma_jump: float = 1.0
+    """exploration=params: a factor on the exploration stds when ``param_elite`` moves the mean onto rollouts
+    that succeeded (not by return; 1: off). Fewer than half of the draws inserting says the gains that insert
+    are a narrow set next to the spread: the next draws are narrowed at once, not an update later."""
     mlp_hidden: int = 64
     """MLP policy: units per hidden layer (two hidden layers)."""
     mlp_activation: str = "tanh"
@@ -310,11 +320,17 @@ class TrainConfig:
             raise ValueError(f"param_sigma_settle must be in (0, 1], got {self.param_sigma_settle}")
         if not 0.0 <= self.param_settle_success <= 1.0:
             raise ValueError(f"param_settle_success must be in [0, 1], got {self.param_settle_success}")
+        if self.param_settle_rule not in ("mean", "batch"):
+            raise ValueError(f"param_settle_rule must be mean or batch, got {self.param_settle_rule!r}")
+        if not 0.0 <= self.param_settle_from <= 1.0:
+            raise ValueError(f"param_settle_from must be in [0, 1], got {self.param_settle_from}")
         if self.param_sigma_settle < 1.0 and self.rollouts_per_iter % 2 == 0:
             raise ValueError("param_sigma_settle needs an odd rollouts_per_iter: the last rollout runs the mean")
         if self.param_elite not in ("none", "succeeded", "returns", "minority", "minority_returns"):
             raise ValueError("param_elite must be none, succeeded, returns, minority or minority_returns, "
                              f"got {self.param_elite!r}")
+        if not 0.0 < self.param_sigma_jump <= 1.0:
+            raise ValueError(f"param_sigma_jump must be in (0, 1], got {self.param_sigma_jump}")
         if self.param_elite != "none" and self.rollouts_per_iter % 2 == 0:
             raise ValueError("param_elite needs an odd rollouts_per_iter: the last rollout runs the mean")
         if self.exploration == "params" and self.gains == "fixed" and self.param_sigma_flow == 0.0:

@@ -77,7 +77,8 @@ NF_ONLY = frozenset({"n_flow", "n_hidden", "activation", "flow_init", "stiffness
                      "flow_input_scale", "param_step",
                      "param_lr_flow", "param_ratio", "param_flow_dim", "param_adv_scale",
                      "param_spread_signal", "param_optimizer", "param_sigma_settle", "param_settle_success",
-                     "param_elite"})
+                     "param_settle_rule", "param_settle_from",
+                     "param_elite", "param_sigma_jump"})
 TIMING_KEYS = ("rollout_seconds", "update_seconds", "wall_seconds")
 
 
@@ -352,7 +353,8 @@ class Trainer:
         succeeded, move the mean to the average of the succeeded draws; ``returns`` also, when none succeeded, to the
         average of the best quarter of the draws by return if each beat the mean's own return; ``minority``: whenever
         some rollouts (the mean's included) succeeded but fewer than half, to the average of those;
-        ``minority_returns`` also, when none succeeded, as ``returns``. The number of rollouts averaged (0: no move)."""
+        ``minority_returns`` also, when none succeeded, as ``returns``. A move onto succeeded rollouts also multiplies
+        the stds by ``param_sigma_jump``. The number of rollouts averaged (0: no move)."""
         if len(episodes) % 2 == 0 or episodes[-1] is None:
             return 0
         mode = self.cfg.param_elite
@@ -364,12 +366,15 @@ class Trainer:
             if episodes[-1].final_success:
                 return 0
             won = [i for i, e in enumerate(episodes[:-1]) if e is not None and e.final_success]
-        if not won and mode in ("returns", "minority_returns"):
+        by_return = not won and mode in ("returns", "minority_returns")
+        if by_return:
             won = self._better_by_return(episodes)
         if not won:
             return 0
         self.explorer.set_mean(np.mean(self._pending[won], axis=0))
         self.explorer.sync_policy()
+        if not by_return:
+            self.explorer.decay(self.cfg.param_sigma_jump)
         return len(won)
 
     @staticmethod
@@ -381,9 +386,16 @@ class Trainer:
 
     def settle_factor(self, episodes: list[EpisodeRecord | None]) -> float:
         """``param_sigma_settle`` if this iteration's rollout of the mean (the odd last one) succeeded while
-        fewer than ``param_settle_success`` of the draws (the pairs) did, else 1."""
+        fewer than ``param_settle_success`` of the draws (the pairs) did, else 1. With ``param_settle_rule``
+        batch: if the success rate of all rollouts that ran is in [``param_settle_from``, ``param_settle_success``)."""
         factor = self.cfg.param_sigma_settle
-        if factor >= 1.0 or len(episodes) % 2 == 0 or episodes[-1] is None:
+        if factor >= 1.0:
+            return 1.0
+        if self.cfg.param_settle_rule == "batch":
+            ran = [e.final_success for e in episodes if e is not None]
+            rate = float(np.mean(ran)) if ran else 0.0
+            return factor if self.cfg.param_settle_from <= rate < self.cfg.param_settle_success else 1.0
+        if len(episodes) % 2 == 0 or episodes[-1] is None:
             return 1.0
         draws = [e.final_success for e in episodes[:-1] if e is not None]
         if episodes[-1].final_success and draws and float(np.mean(draws)) < self.cfg.param_settle_success:
