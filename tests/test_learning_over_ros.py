@@ -274,9 +274,10 @@ def test_the_robot_runs_learner_takes_the_arm_settings_over_the_task_file(tmp_pa
         written = json.loads(config.read_text())
     expected = TrainConfig.from_sources(cfg / "gear_learn.yaml")
     arm = yaml.safe_load((cfg / "franka_learn.yaml").read_text())["learner_node"]["ros__parameters"]
-    assert arm["param_elite"] != "none" and arm["param_sigma_settle"] < 1.0
-    assert (written["param_elite"], written["param_sigma_settle"]) == (arm["param_elite"], arm["param_sigma_settle"])
-    assert (expected.param_elite, expected.param_sigma_settle) == ("none", 1.0)  # not the task file's
+    assert arm["param_elite"] != "none" and arm["param_sigma_settle"] < 1.0 and arm["param_sigma_jump"] < 1.0
+    for key in ("param_elite", "param_sigma_settle", "param_sigma_jump"):
+        assert written[key] == arm[key], key
+    assert (expected.param_elite, expected.param_sigma_settle, expected.param_sigma_jump) == ("none", 1.0, 1.0)
     for key in ("potential_force_bound", "rollouts_per_iter", "param_sigma_gains", "stiffness", "task"):
         assert written[key] == expected.to_dict()[key], key
 
