@@ -97,10 +97,11 @@ def test_the_trainer_config_reads_the_ranges_and_refuses_a_fixed_start_with_rand
     cfg = TrainConfig.from_sources(FRICTION_YAML)
     assert cfg.friction_ranges() == RANGES
     # gear_learn_friction.yaml is gear_learn.yaml plus the two ranges, without the force bound (the
-    # robot's controller has none), nothing else
+    # robot's controller has none), with the spread it was measured with (0.5, no settling), nothing else
     assert cfg == TrainConfig.from_sources(CONFIG / "gear_learn.yaml",
                                            {"friction_coulomb": "0.2, 1.2", "friction_viscous": "[0.0, 0.2]",
-                                            "potential_force_bound": 0.0})
+                                            "potential_force_bound": 0.0, "param_sigma_gains": 0.5,
+                                            "param_settle_rule": "mean", "param_sigma_settle": 1.0})
     assert not TrainConfig().friction_ranges().enabled  # off by default
     assert TrainConfig(friction_coulomb=[0, 1]).friction_coulomb == [0.0, 1.0]  # YAML [0, 1]: ints
     with pytest.raises(ValueError, match="start: fixed"):

@@ -275,10 +275,12 @@ def test_the_robot_runs_learner_takes_the_arm_settings_over_the_task_file(tmp_pa
     expected = TrainConfig.from_sources(cfg / "gear_learn.yaml")
     arm = yaml.safe_load((cfg / "franka_learn.yaml").read_text())["learner_node"]["ros__parameters"]
     assert arm["param_elite"] != "none" and arm["param_sigma_settle"] < 1.0 and arm["param_sigma_jump"] < 1.0
-    for key in ("param_elite", "param_sigma_settle", "param_sigma_jump"):
+    for key in ("param_elite", "param_sigma_settle", "param_sigma_jump", "param_sigma_gains", "param_settle_rule"):
         assert written[key] == arm[key], key
-    assert (expected.param_elite, expected.param_sigma_settle, expected.param_sigma_jump) == ("none", 1.0, 1.0)
-    for key in ("potential_force_bound", "rollouts_per_iter", "param_sigma_gains", "stiffness", "task"):
+    assert (expected.param_elite, expected.param_sigma_settle, expected.param_sigma_jump) == ("none", 0.8, 1.0)
+    assert (expected.param_sigma_gains, expected.param_settle_rule) == (0.7, "batch")  # random starts' spread
+    assert (arm["param_sigma_gains"], arm["param_settle_rule"]) == (0.5, "mean")  # the arm's, as measured
+    for key in ("potential_force_bound", "rollouts_per_iter", "stiffness", "task"):
         assert written[key] == expected.to_dict()[key], key
 
 

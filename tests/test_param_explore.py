@@ -297,6 +297,10 @@ def test_batch_rule_settles_once_most_rollouts_succeed_and_not_all(tmp_path):
 def test_settling_needs_the_mean_rollout():
     with pytest.raises(ValueError, match="odd rollouts_per_iter"):
         TrainConfig(**{**TINY, "rollouts_per_iter": 4, "param_sigma_settle": 0.8})
+    # the batch rule reads every rollout's outcome, not the mean's: an even batch is fine
+    even = Trainer(TrainConfig(**{**TINY, "rollouts_per_iter": 4, "param_sigma_settle": 0.8,
+                                  "param_settle_rule": "batch", "param_settle_from": 0.5}))
+    assert even.settle_factor(_outcomes([True, False, True], mean=False)) == 0.8  # 2 of 4 rollouts inserted
     with pytest.raises(ValueError, match="param_sigma_settle"):
         TrainConfig(**{**TINY, "param_sigma_settle": 0.0})
 

@@ -111,14 +111,17 @@ def test_none_resets_to_task_default_and_table_lists_every_field():
 
 def test_gear_learn_yaml_is_gear_yaml_with_the_documented_sets():
     """docs/results/gear_learned ran nf_report on gear.yaml with these --set values (S, D learned); the
-    flow's settings of docs/results/gear_flow and its force bound come on top: gear_learn.yaml is exactly those."""
+    flow's settings of docs/results/gear_flow, its force bound and the wide-then-settled spread come on top:
+    gear_learn.yaml is exactly those."""
     sets = {"stiffness_axial": "none", "flow_init": "identity", "gains": "learned", "exploration": "params",
             "param_sigma_gains": "0.5", "param_lr": "0.1", "param_sigma_lr": "0.01", "param_sigma_decay": "0.97"}
     flow = {"param_sigma_flow": "0.05", "flow_input_scale": "0.05", "param_flow": "subspace", "param_flow_dim": "8",
             "param_ratio": "group", "param_step": "current", "param_adv_scale": "running",
             "potential_force_bound": "60"}
+    spread = {"param_sigma_gains": "0.7", "param_settle_rule": "batch", "param_settle_from": "0.6",
+              "param_settle_success": "0.9", "param_sigma_settle": "0.8"}
     learn = TrainConfig.from_sources(CONFIG_DIR / "gear_learn.yaml")
-    assert learn == TrainConfig.from_sources(CONFIG_DIR / "gear.yaml", sets | flow)
+    assert learn == TrainConfig.from_sources(CONFIG_DIR / "gear.yaml", sets | flow | spread)
     assert learn.stiffness_matrix().tolist() == [[300.0, 0.0, 0.0], [0.0, 300.0, 0.0], [0.0, 0.0, 300.0]]
 
 

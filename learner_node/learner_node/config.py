@@ -324,8 +324,9 @@ class TrainConfig:
             raise ValueError(f"param_settle_rule must be mean or batch, got {self.param_settle_rule!r}")
         if not 0.0 <= self.param_settle_from <= 1.0:
             raise ValueError(f"param_settle_from must be in [0, 1], got {self.param_settle_from}")
-        if self.param_sigma_settle < 1.0 and self.rollouts_per_iter % 2 == 0:
-            raise ValueError("param_sigma_settle needs an odd rollouts_per_iter: the last rollout runs the mean")
+        if self.param_sigma_settle < 1.0 and self.param_settle_rule == "mean" and self.rollouts_per_iter % 2 == 0:
+            raise ValueError("param_sigma_settle with param_settle_rule mean needs an odd rollouts_per_iter: the "
+                             "last rollout runs the mean")
         if self.param_elite not in ("none", "succeeded", "returns", "minority", "minority_returns"):
             raise ValueError("param_elite must be none, succeeded, returns, minority or minority_returns, "
                              f"got {self.param_elite!r}")
