@@ -318,7 +318,7 @@ def test_learner_killed_mid_iteration_holds_the_arm_and_resumes_without_losing_a
         assert status[-1][1].mode == MODE_IDLE and not status[-1][1].fault
         assert len(json.loads(metrics.read_text())) == 1  # iteration 2 never finished (nor will it)
         second = learner(domain, run, tmp_path / "learner2.log", 3, settings)
-        assert wait_exit(second, 300) == 0, second.log()
+        assert wait_exit(second, 300) == 0, f"{second.log()}\n{logs(arm)}"
         assert "resuming from" in second.log() and "after iteration 1" in second.log()
     finally:
         stop(arm)

@@ -162,6 +162,13 @@ class ArmLink:
         fresh = self.status_at is not None and time.monotonic() - self.status_at < timeout
         return fresh and self.action.server_is_ready()
 
+    def describe(self) -> str:
+        """What the learner sees of this arm, for an error message: its status and its action server."""
+        status = "no controller_status yet" if self.status_at is None else \
+            f"last controller_status {time.monotonic() - self.status_at:.1f} s ago"
+        server = "matched" if self.action.server_is_ready() else "not matched"
+        return f"{self.name}: {status}, run_episode server {server}"
+
     def lost_reason(self, timeout: float) -> str | None:
         """Why the arm counts as gone, or None while it is alive."""
         if self.status_at is None or time.monotonic() - self.status_at >= timeout:
@@ -562,6 +569,8 @@ class RosTraining:
             if time.monotonic() > deadline or self.stop.is_set():
                 LOG.error("no run_episode action server (is nf_controller running? arms: %s%s)",
                           ", ".join(settings["arms"]), ", and any found" if settings["discover_arms"] else "")
+                for arm in list(self.node.arms.values()):
+                    LOG.error("after %.0f s: %s", settings["server_timeout"], arm.describe())
                 return 1
             time.sleep(0.1)
         try:
