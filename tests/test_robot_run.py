@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from nf_bringup.robot_run import FRANKY_GOAL, Progress, _parse, robot_commands
+from nf_bringup.robot_run import ARM_STIFFNESS_FLOOR, FRANKY_GOAL, Progress, _parse, robot_commands
 from nf_bringup.run_summary import write_summary
 
 CONFIGS = [f"--config={Path(__file__).resolve().parents[1] / 'config' / 'gear_learn.yaml'}",
@@ -149,3 +149,18 @@ def test_the_arm_settings_reach_the_learner_after_the_task_file_from_scratch_onl
     with pytest.raises(SystemExit):
         _parse([*CONFIGS, f"--arm-settings={typo}", "--out", "x"])
     assert "param_elite must be none, succeeded, returns, minority or minority_returns" in capsys.readouterr().err
+
+
+def test_the_arms_stiffness_floor_reaches_the_learner_from_scratch_and_from_a_checkpoint(tmp_path, capsys):
+    """The arm's joint friction stalls a soft spring: the learner gets the floor in both modes (default
+    ARM_STIFFNESS_FLOOR; 0: off), and a negative one is refused before anything starts."""
+    cmds = robot_commands(_parse([*CONFIGS, "--out", str(tmp_path)]), tmp_path, record=False)
+    assert _value(cmds["learner"], "learner_node:stiffness_floor") == repr(ARM_STIFFNESS_FLOOR)
+    ckpt = tmp_path / "sim.pt"
+    ckpt.write_bytes(b"")
+    args = _parse([*CONFIGS, "--out", str(tmp_path / "ft"), "--from-checkpoint", str(ckpt), "--stiffness-floor=0"])
+    learner = robot_commands(args, tmp_path / "ft", record=False)["learner"]
+    assert _value(learner, "learner_node:stiffness_floor") == "0.0"
+    with pytest.raises(SystemExit):
+        _parse([*CONFIGS, "--out", str(tmp_path), "--stiffness-floor=-5"])
+    assert "--stiffness-floor must be >= 0" in capsys.readouterr().err

@@ -411,3 +411,31 @@ def test_fresh_removes_the_earlier_runs_results(tmp_path, caplog):
     assert not (tmp_path / PRIOR_EVALUATION_FILE).exists() and not (tmp_path / EVALUATION_FILE).exists()
     assert list((tmp_path / "evaluations").glob("*.json")) == []
     assert [r["iteration"] for r in json.loads((tmp_path / "metrics.json").read_text())] == [1.0, 2.0]
+
+
+def test_stiffness_floor_bounds_every_draw_the_mean_and_a_loaded_policy(tmp_path, caplog):
+    """stiffness_floor (the arm's joint friction stalls a soft spring): no draw, no mean and no policy
+    loaded from a checkpoint runs an S entry below it; what is refused is said."""
+    source = Trainer(TrainConfig.from_sources(GEAR_LEARN, {**GEAR_TINY, "stiffness_axial": 120.0}), tmp_path / "sim")
+    assert float(source.policy.to_params().stiffness[2, 2]) == pytest.approx(120.0)
+    source.save_checkpoint(tmp_path / "soft.pt")
+    cfg = TrainConfig.from_sources(GEAR_LEARN, {**GEAR_TINY, "stiffness_floor": 250.0,
+                                                "init_checkpoint": str(tmp_path / "soft.pt")})
+    run = Trainer(cfg, tmp_path / "arm")
+    with caplog.at_level(logging.INFO):
+        run.resume_or_init()
+    assert "stiffness [300.0, 300.0, 120.0] N/m lifted to stiffness_floor 250 N/m (entries [2])" in caplog.text
+    s = np.diag(run.policy.to_params().stiffness)
+    assert s[2] == pytest.approx(250.0) and s[:2] == pytest.approx([300.0, 300.0])
+    draws, _ = run.explorer.sample(64, np.random.default_rng(1))
+    stiff = np.array([np.diag(run.explorer.params_for(t).stiffness) for t in draws])
+    assert stiff.min() == pytest.approx(250.0) and (np.exp(draws[:, :3]) < 250.0).any()  # some were lifted
+    with torch.no_grad():  # a mean below the floor (an update may move it there) still runs the floor
+        run.policy.ln_s[0] = math.log(100.0)
+    assert np.diag(run.policy.to_params().stiffness)[0] == pytest.approx(250.0)
+    with pytest.raises(ValueError, match="starts below stiffness_floor"):
+        Trainer(TrainConfig.from_sources(GEAR_LEARN, {**GEAR_TINY, "stiffness_floor": 400.0}))
+    with pytest.raises(ValueError, match="stiffness_floor needs the nf policy with gains: learned"):
+        TrainConfig.from_sources(GEAR_LEARN, {**GEAR_TINY, "stiffness_floor": 250.0, "gains": "fixed"})
+    with pytest.raises(ValueError, match="stiffness_floor"):
+        TrainConfig.from_sources(GEAR_LEARN, {**GEAR_TINY, "stiffness_floor": -1.0})

@@ -103,6 +103,10 @@ class TrainConfig:
     beyond it the potential grows linearly, so a stiff policy started far from x_ref does not drive the
     joints into their torque limits, where the stability proof does not reach. 0: off. A shared (``/**``)
     setting: the controller node reads the same key. Parameter exploration only."""
+    stiffness_floor: float = 0.0
+    """Learned gains: no diagonal entry of S (N/m, latent) below it, in every draw, the mean and a loaded
+    policy (lifted onto it). An arm's joint friction stalls a soft spring that a frictionless simulation
+    inserts with (docs/hardware.md); run_robot sets it for the arm. 0: off."""
     gains: str = "fixed"
     """NF policy: fixed (S, D as set above) or learned (their diagonals, through exp, start at the values
     above: every value stays symmetric positive definite, so the stability proof holds throughout)."""
@@ -308,6 +312,9 @@ class TrainConfig:
         _choice("param_spread_signal", self.param_spread_signal, PARAM_SPREAD_SIGNALS)
         _non_negative("param_lr_flow", self.param_lr_flow)
         _non_negative("potential_force_bound", self.potential_force_bound)
+        _non_negative("stiffness_floor", self.stiffness_floor)
+        if self.stiffness_floor > 0.0 and (self.gains != "learned" or self.policy != "nf"):
+            raise ValueError("stiffness_floor needs the nf policy with gains: learned (it bounds the learned S)")
         if self.potential_force_bound > 0.0 and self.exploration == "action":
             raise ValueError("potential_force_bound needs exploration=params: the learner's differentiable force "
                              "(action noise's likelihood) has no bound")

@@ -131,7 +131,9 @@ class ParamExploration(nn.Module):
         d = base.x_ref.shape[0]
         changes: dict[str, np.ndarray] = {}
         if self.explore_gains:
-            changes["stiffness"] = np.diag(np.exp(np.minimum(theta[:d], LN_MAX_STIFFNESS)))
+            floor = self.policy[0].ln_s_floor
+            changes["stiffness"] = np.diag(np.exp(np.clip(theta[:d], -np.inf if floor is None else floor,
+                                                          LN_MAX_STIFFNESS)))
             changes["damping"] = np.diag(np.exp(np.minimum(theta[d : 2 * d], LN_MAX_DAMPING)))
         if self.explore_flow:
             changes["weights"] = self.flow_weights(np.asarray(theta[self.n_gain :], dtype=np.float64))

@@ -99,10 +99,12 @@ class NFPolicy(GaussianForceMixin, nn.Module):
         dtype: torch.dtype = torch.float64,
         flow_init: str = "random",
         learn_gains: bool = False,
+        stiffness_floor: float = 0.0,
     ) -> None:
         """S, D default to identity, x_ref to zero; log_std defaults to ``[log(sigma_init)]`` (shared);
         without ``weights`` the flow starts from ``init_flow_weights(seed, flow_init)``. ``learn_gains``:
-        S and D must be diagonal; their log-diagonals become the parameters ``ln_s`` and ``ln_d``."""
+        S and D must be diagonal; their log-diagonals become the parameters ``ln_s`` and ``ln_d``.
+        ``stiffness_floor`` (N/m, learned gains only; 0: none): no diagonal entry of S goes below it."""
         super().__init__()
         d = arch.dim
         self.arch = arch
@@ -128,15 +130,32 @@ class NFPolicy(GaussianForceMixin, nn.Module):
                     raise ValueError(f"learned gains need a positive diagonal {name}, got {m.tolist()}")
             self.ln_s = nn.Parameter(torch.log(torch.diagonal(self.S)).clone())
             self.ln_d = nn.Parameter(torch.log(torch.diagonal(self.D)).clone())
+        if stiffness_floor < 0.0 or (stiffness_floor > 0.0 and not self.learn_gains):
+            raise ValueError(f"stiffness_floor must be >= 0 and needs learned gains, got {stiffness_floor}")
+        # ln of the floor (None: none), and whether S started below it (a wrong prior, refused)
+        self.ln_s_floor = math.log(stiffness_floor) if stiffness_floor > 0.0 else None
+        if self.ln_s_floor is not None and bool((self.ln_s < self.ln_s_floor).any()):
+            raise ValueError(f"S {torch.diagonal(self.S).tolist()} starts below stiffness_floor {stiffness_floor}")
 
     # ---- gains -------------------------------------------------------------------------------
     def gains(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(S, D) as used by the controller now: the fixed buffers, or diag(exp(ln_s)), diag(exp(ln_d))
         (differentiable in ln_s, ln_d)."""
         if self.learn_gains:
-            return torch.diag(torch.exp(self.ln_s.clamp(max=LN_MAX_STIFFNESS))), torch.diag(
+            return torch.diag(torch.exp(self.ln_s.clamp(min=self.ln_s_floor, max=LN_MAX_STIFFNESS))), torch.diag(
                 torch.exp(self.ln_d.clamp(max=LN_MAX_DAMPING)))
         return self.S, self.D
+
+    def raise_to_floor(self) -> list[int]:
+        """Lift every learned ln S entry below ``stiffness_floor`` onto it (a loaded policy's); returns the
+        indices lifted."""
+        if self.ln_s_floor is None:
+            return []
+        with torch.no_grad():
+            low = (self.ln_s < self.ln_s_floor).nonzero().reshape(-1).tolist()
+            self.ln_s.clamp_(min=self.ln_s_floor)
+        self.sync_gains()
+        return low
 
     def sync_gains(self) -> None:
         """Copy the learned gains into the buffers ``S`` and ``D`` (no-op for fixed gains)."""

@@ -93,7 +93,8 @@ def build_policy(cfg: TrainConfig, x_ref: np.ndarray) -> NFPolicy | MLPPolicy:
             weights = rescale_flow_weights(arch, normalised, x_ref, cfg.flow_input_scale)
         return NFPolicy(arch, weights=weights, stiffness=cfg.stiffness_matrix(), damping=cfg.damping_matrix(),
                         x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed,
-                        flow_init=cfg.flow_init, learn_gains=cfg.gains == "learned")
+                        flow_init=cfg.flow_init, learn_gains=cfg.gains == "learned",
+                        stiffness_floor=cfg.stiffness_floor)
     return MLPPolicy(d, cfg.mlp_hidden, cfg.mlp_activation, x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed)
 
 
@@ -573,6 +574,11 @@ class Trainer:
                 if pol.learn_gains:
                     pol.ln_s.copy_(torch.log(torch.diagonal(S)))
                     pol.ln_d.copy_(torch.log(torch.diagonal(D)))
+                    lifted = pol.raise_to_floor()
+                    if lifted:
+                        LOG.info("init_checkpoint %s: stiffness %s N/m lifted to stiffness_floor %.0f N/m (entries %s)",
+                                 path, np.round(torch.diagonal(S).numpy(), 1).tolist(), self.cfg.stiffness_floor,
+                                 lifted)
             elif isinstance(pol, MLPPolicy) and isinstance(source, MLPPolicy):
                 pol.layers.load_state_dict(source.layers.state_dict())
             else:

@@ -51,6 +51,9 @@ ROBOT_RECORDER_READY = recorder_ready(("",), ROBOT_RECORDED_BEFORE_LEARNING)
 FRANKY = "franky"
 FRANKY_GOAL = (0.5, 0.0, 0.05)  # the gear cell's goal on franky-sim: 2 cm below the shaft's mouth (0.07 m)
 DEFAULT_ITERATIONS = 15  # about 100 s each on franky-sim (15 x 5 s episodes and the reset motions); window 9-12
+# N/m: the least axial spring that inserts on franky-sim's FR3 (joint friction): a simulation policy
+# with 142 N/m stalled on the shaft top in all 10 starts, 229 N/m and more inserted (docs/hardware.md)
+ARM_STIFFNESS_FLOOR = 250.0
 HARDWARE_CONFIG = Path("config/franka.yaml")
 ARM_SETTINGS = Path("config/franka_learn.yaml")  # the learner's settings for an arm's one start, over the task file
 NONE = "none"
@@ -105,6 +108,7 @@ def robot_commands(args: argparse.Namespace, run_dir: Path, record: bool) -> dic
                "-p", f"learner_node:iterations:={args.iterations}",
                "-p", f"learner_node:on_safe_hold:={'auto' if franky else 'wait'}",
                "-p", f"learner_node:policy_subscribers:={2 if record else 1}",
+               "-p", f"learner_node:stiffness_floor:={float(args.stiffness_floor)!r}",
                *from_checkpoint_args(args.from_checkpoint, run_dir), *args.learner_arg]
     cmds = {"arm": arm, "learner": learner}
     if record:
@@ -178,6 +182,10 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
                              "train --out runs/gear): its flow, S, D and spread with this cell's goal; the prior "
                              "evaluated first is then the zero-shot result (a run folder's own checkpoint resumes "
                              "instead)")
+    parser.add_argument("--stiffness-floor", type=float, default=ARM_STIFFNESS_FLOOR, metavar="N_PER_M",
+                        help="least learned stiffness S (N/m, every draw and a --from-checkpoint policy lifted onto "
+                             f"it): the arm's joint friction stalls softer springs (default {ARM_STIFFNESS_FLOOR:g}, "
+                             "measured on franky-sim's FR3; 0: off)")
     parser.add_argument("--learner-arg", action="append", default=[], metavar="ARG",
                         help="extra ROS argument for the learner, e.g. -p learner_node:rollouts_per_iter:=5")
     args = parser.parse_args(argv)
@@ -202,6 +210,8 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
         parser.error(problem)
     if args.iterations < 1:
         parser.error("--iterations must be >= 1")
+    if not args.stiffness_floor >= 0.0:
+        parser.error("--stiffness-floor must be >= 0 (N/m; 0: off)")
     if args.out is None:
         args.out = Path("runs") / time.strftime("robot-%Y%m%d-%H%M%S")
     try:
@@ -231,6 +241,7 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"{'franky-sim (gear cell)' if franky else args.robot}, goal {args.goal}; {args.iterations} iterations"
           + (f"; the learner starts from {args.from_checkpoint}" if args.from_checkpoint else "")
           + (f"; learner settings {args.config} + {args.arm_settings}" if arm_settings_apply(args) else "")
+          + (f"; stiffness floor {args.stiffness_floor:g} N/m" if args.stiffness_floor > 0 else "")
           + "; Ctrl-C stops cleanly, the same --out resumes", flush=True)
     sim = None
     procs: dict[str, ManagedProcess] = {}
