@@ -151,16 +151,20 @@ def test_the_arm_settings_reach_the_learner_after_the_task_file_from_scratch_onl
     assert "param_elite must be none, succeeded, returns, minority or minority_returns" in capsys.readouterr().err
 
 
-def test_the_arms_stiffness_floor_reaches_the_learner_from_scratch_and_from_a_checkpoint(tmp_path, capsys):
-    """The arm's joint friction stalls a soft spring: the learner gets the floor in both modes (default
-    ARM_STIFFNESS_FLOOR; 0: off), and a negative one is refused before anything starts."""
+def test_the_arms_stiffness_floor_reaches_a_learner_that_starts_from_a_checkpoint(tmp_path, capsys):
+    """A frictionless simulation can learn a spring the arm's friction stalls: from a checkpoint the learner
+    gets ARM_STIFFNESS_FLOOR, from scratch none (the arm's rollouts carry its friction); either can be
+    set, and a negative one is refused before anything starts."""
     cmds = robot_commands(_parse([*CONFIGS, "--out", str(tmp_path)]), tmp_path, record=False)
-    assert _value(cmds["learner"], "learner_node:stiffness_floor") == repr(ARM_STIFFNESS_FLOOR)
+    assert _value(cmds["learner"], "learner_node:stiffness_floor") == "0.0"
     ckpt = tmp_path / "sim.pt"
     ckpt.write_bytes(b"")
-    args = _parse([*CONFIGS, "--out", str(tmp_path / "ft"), "--from-checkpoint", str(ckpt), "--stiffness-floor=0"])
-    learner = robot_commands(args, tmp_path / "ft", record=False)["learner"]
-    assert _value(learner, "learner_node:stiffness_floor") == "0.0"
+    for extra, floor in (([], repr(ARM_STIFFNESS_FLOOR)), (["--stiffness-floor=0"], "0.0")):
+        args = _parse([*CONFIGS, "--out", str(tmp_path / "ft"), "--from-checkpoint", str(ckpt), *extra])
+        learner = robot_commands(args, tmp_path / "ft", record=False)["learner"]
+        assert _value(learner, "learner_node:stiffness_floor") == floor
+    args = _parse([*CONFIGS, "--out", str(tmp_path), "--stiffness-floor=300"])
+    assert _value(robot_commands(args, tmp_path, record=False)["learner"], "learner_node:stiffness_floor") == "300.0"
     with pytest.raises(SystemExit):
         _parse([*CONFIGS, "--out", str(tmp_path), "--stiffness-floor=-5"])
     assert "--stiffness-floor must be >= 0" in capsys.readouterr().err

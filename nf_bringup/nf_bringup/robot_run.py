@@ -51,8 +51,10 @@ ROBOT_RECORDER_READY = recorder_ready(("",), ROBOT_RECORDED_BEFORE_LEARNING)
 FRANKY = "franky"
 FRANKY_GOAL = (0.5, 0.0, 0.05)  # the gear cell's goal on franky-sim: 2 cm below the shaft's mouth (0.07 m)
 DEFAULT_ITERATIONS = 15  # about 100 s each on franky-sim (15 x 5 s episodes and the reset motions); window 9-12
-# N/m: the least axial spring that inserts on franky-sim's FR3 (joint friction): a simulation policy
-# with 142 N/m stalled on the shaft top in all 10 starts, 229 N/m and more inserted (docs/hardware.md)
+# N/m, for a policy learned elsewhere (--from-checkpoint): a simulation without joint friction can
+# learn a spring too soft for the arm. On franky-sim's FR3 a simulation policy with a 142 N/m axial
+# spring stalled on the shaft top in all 10 starts; lifted to 250 N/m it inserted 10/10
+# (docs/hardware.md). From scratch the arm's own rollouts carry its friction: no floor by default.
 ARM_STIFFNESS_FLOOR = 250.0
 HARDWARE_CONFIG = Path("config/franka.yaml")
 ARM_SETTINGS = Path("config/franka_learn.yaml")  # the learner's settings for an arm's one start, over the task file
@@ -182,10 +184,11 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
                              "train --out runs/gear): its flow, S, D and spread with this cell's goal; the prior "
                              "evaluated first is then the zero-shot result (a run folder's own checkpoint resumes "
                              "instead)")
-    parser.add_argument("--stiffness-floor", type=float, default=ARM_STIFFNESS_FLOOR, metavar="N_PER_M",
-                        help="least learned stiffness S (N/m, every draw and a --from-checkpoint policy lifted onto "
-                             f"it): the arm's joint friction stalls softer springs (default {ARM_STIFFNESS_FLOOR:g}, "
-                             "measured on franky-sim's FR3; 0: off)")
+    parser.add_argument("--stiffness-floor", type=float, default=None, metavar="N_PER_M",
+                        help="least learned stiffness S, N/m: every draw, and a --from-checkpoint policy lifted onto "
+                             "it (a frictionless simulation can learn a spring the arm's joint friction stalls); "
+                             f"default {ARM_STIFFNESS_FLOOR:g} with --from-checkpoint (measured on franky-sim's FR3), "
+                             "0 (off) from scratch")
     parser.add_argument("--learner-arg", action="append", default=[], metavar="ARG",
                         help="extra ROS argument for the learner, e.g. -p learner_node:rollouts_per_iter:=5")
     args = parser.parse_args(argv)
@@ -210,6 +213,8 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
         parser.error(problem)
     if args.iterations < 1:
         parser.error("--iterations must be >= 1")
+    if args.stiffness_floor is None:
+        args.stiffness_floor = ARM_STIFFNESS_FLOOR if args.from_checkpoint is not None else 0.0
     if not args.stiffness_floor >= 0.0:
         parser.error("--stiffness-floor must be >= 0 (N/m; 0: off)")
     if args.out is None:
