@@ -313,6 +313,19 @@ def test_deploy_moves_the_flow_with_the_goal_as_the_learner_does(tmp_path):
     kept = prepare(load_checkpoint_policy(ckpt)[0], None, None, scale)  # --keep-x-ref: as learned
     np.testing.assert_allclose(kept.x_ref, [0.5, 0.0, 0.07])
     assert not np.allclose(kept.weights, deployed.weights)
+    # --stiffness-floor lifts S as the learner's stiffness_floor lifts a loaded policy
+    soft = Trainer(TrainConfig.from_sources(GEAR_LEARN, {**GEAR_TINY, "stiffness_axial": 120.0}), tmp_path / "soft")
+    soft.save_checkpoint(tmp_path / "soft.pt")
+    lifted = prepare(load_checkpoint_policy(tmp_path / "soft.pt")[0], goal, None, scale, stiffness_floor=250.0)
+    np.testing.assert_allclose(np.diag(lifted.stiffness), [300.0, 300.0, 250.0])
+    floored = Trainer(TrainConfig.from_sources(GEAR_LEARN, {**GEAR_TINY, "goal": goal, "stiffness_floor": 250.0,
+                                                            "init_checkpoint": str(tmp_path / "soft.pt")}),
+                      tmp_path / "robot2")
+    floored.resume_or_init()
+    np.testing.assert_allclose(lifted.stiffness, floored.policy.to_params().stiffness, rtol=1e-12)
+    np.testing.assert_allclose(lifted.weights, floored.policy.to_params().weights, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="stiffness floor must be >= 0"):
+        prepare(load_checkpoint_policy(ckpt)[0], goal, None, scale, stiffness_floor=-1.0)
 
 
 def test_init_sigma_scale_narrows_the_loaded_spread(tmp_path):

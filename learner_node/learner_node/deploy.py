@@ -43,10 +43,18 @@ def load_checkpoint_policy(path: str | Path) -> tuple[PolicyParameters, int, flo
 
 
 def prepare(params: PolicyParameters, x_ref: list[float] | None, version: int | None,
-            flow_input_scale: float = 0.0) -> PolicyParameters:
+            flow_input_scale: float = 0.0, stiffness_floor: float = 0.0) -> PolicyParameters:
     """``params`` with the user's goal and version, checked like the controller checks them. With the
     run's ``flow_input_scale`` > 0 the flow's landscape moves with the goal (as the learner's
-    ``init_checkpoint`` moves it)."""
+    ``init_checkpoint`` moves it). ``stiffness_floor`` > 0 (N/m): diagonal S entries below it are lifted
+    onto it, as ``run_robot --from-checkpoint`` does (``ValueError`` for a non-diagonal S)."""
+    if stiffness_floor < 0.0:
+        raise ValueError(f"stiffness floor must be >= 0 N/m, got {stiffness_floor}")
+    if stiffness_floor > 0.0:
+        S = params.stiffness
+        if not np.array_equal(S, np.diag(np.diag(S))):
+            raise ValueError("a stiffness floor needs a diagonal S (learned gains); this policy's S is full")
+        params.stiffness = np.diag(np.maximum(np.diag(S), stiffness_floor))
     if x_ref is not None:
         from .flow import move_flow_to_goal
 
@@ -70,6 +78,10 @@ def _parser() -> argparse.ArgumentParser:
     goal.add_argument("--keep-x-ref", action="store_true", help="keep the checkpoint's (simulated) goal")
     ap.add_argument("--version", type=int, default=None, help="policy version (default: the checkpoint's iteration)")
     ap.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: until Ctrl-C)")
+    ap.add_argument("--stiffness-floor", type=float, default=0.0, metavar="N_PER_M",
+                    help="lift S entries below this (N/m) onto it: a policy from a frictionless simulation may "
+                         "have a spring the arm's friction stalls (run_robot --from-checkpoint uses 250 on the FR3; "
+                         "default 0: as learned)")
     return ap
 
 
@@ -85,7 +97,11 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv if argv is None else argv)
     args = _parser().parse_args(remove_ros_args(argv)[1:])
     params, iteration, scale = load_checkpoint_policy(args.checkpoint)
-    params = prepare(params, None if args.keep_x_ref else args.x_ref, args.version, scale)
+    try:
+        params = prepare(params, None if args.keep_x_ref else args.x_ref, args.version, scale, args.stiffness_floor)
+    except ValueError as exc:
+        print(f"deploy_policy: {exc}", file=sys.stderr)
+        return 2
     rclpy.init(args=argv)
     node = rclpy.create_node("deploy_policy")
     pub = node.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, qos.POLICY)
@@ -93,6 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     a = params.arch
     node.get_logger().info(f"published {args.checkpoint} (iteration {iteration}) as version {params.version}: "
                            f"n_flow={a.n_flow}, n_hidden={a.n_hidden}, x_ref={params.x_ref.tolist()}, "
+                           f"S diagonal {np.round(np.diag(params.stiffness), 1).tolist()} N/m, "
                            f"noise std {np.exp(params.log_std).tolist()} N; latched until stopped")
     deadline = time.monotonic() + args.seconds if args.seconds > 0 else float("inf")
     try:
