@@ -564,8 +564,14 @@ class RosTraining:
         _atomic_write(self.out_dir / "config.json", json.dumps(cfg.to_dict(), indent=1))
         version = self.node.publish_policy(trainer)
         settings = self.node.settings
-        deadline = time.monotonic() + settings["server_timeout"]
+        started = time.monotonic()
+        deadline, next_note = started + settings["server_timeout"], started + 15.0
         while not self.usable_arms():
+            if time.monotonic() > next_note:  # what is missing, while it waits
+                next_note += 15.0
+                LOG.info("waiting for an arm (%.0f of %.0f s): %s", time.monotonic() - started,
+                         settings["server_timeout"],
+                         "; ".join(a.describe() for a in list(self.node.arms.values())) or "none found")
             if time.monotonic() > deadline or self.stop.is_set():
                 LOG.error("no run_episode action server (is nf_controller running? arms: %s%s)",
                           ", ".join(settings["arms"]), ", and any found" if settings["discover_arms"] else "")
