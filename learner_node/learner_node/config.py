@@ -106,7 +106,7 @@ class TrainConfig:
     stiffness_floor: float = 0.0
     """Learned gains: no diagonal entry of S (N/m, latent) below it, in every draw, the mean and a loaded
     policy (lifted onto it). An arm's joint friction stalls a soft spring that a frictionless simulation
-    inserts with (docs/hardware.md); run_robot sets it for the arm. 0: off."""
+    inserts with (docs/hardware.md); run_robot sets 250 for a policy from a checkpoint. 0: off."""
     gains: str = "fixed"
     """NF policy: fixed (S, D as set above) or learned (their diagonals, through exp, start at the values
     above: every value stays symmetric positive definite, so the stability proof holds throughout)."""
