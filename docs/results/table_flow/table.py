@@ -3,8 +3,8 @@
     python docs/results/table_flow/table.py [RUNS_BASE]
 
 RUNS_BASE holds A/, B/, C/ in the layout of ``learner_node.analysis.report`` (``<row>/peg/<policy>-sigma<s>-seed<n>/``
-with config.json, metrics.json, episodes.jsonl, evaluation.json, freespace.json); default: the copies committed
-next to this file (docs/results/table_flow/data). The numbers are report's own (``collect_runs``, ``group_stats``);
+with config.json, metrics.json, episodes.jsonl, evaluation.json, freespace.json); default: runs/table_flow, where
+run_all.sh writes them. The numbers are report's own (``collect_runs``, ``group_stats``);
 this only puts the three rows side by side. Writes table.md, table.json and table_flow_curves.png here.
 """
 
@@ -95,4 +95,4 @@ def main(base: Path) -> None:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else HERE / "data")
+    main(Path(sys.argv[1]) if len(sys.argv) > 1 else HERE.parents[2] / "runs" / "table_flow")
