@@ -30,19 +30,11 @@ RUNS: dict[str, list[str]] = {
 
 
 def _config(files: list[str]):
-    from learner_node.config import TrainConfig, read_yaml_params
+    from learner_node.config import TrainConfig
 
-    values: dict[str, Any] = {}
-    for f in files:
-        values.update(read_yaml_params(ROOT / f))
-    values.update(iterations=ITERATIONS, eval_episodes=EVAL_EPISODES)
-    return TrainConfig(**_parsed(values))
-
-
-def _parsed(values: dict[str, Any]) -> dict[str, Any]:
-    from learner_node.config import parse_value
-
-    return {k: parse_value(k, v) if isinstance(v, str) else v for k, v in values.items()}
+    cfg = TrainConfig.from_sources([ROOT / f for f in files],
+                                   {"iterations": ITERATIONS, "eval_episodes": EVAL_EPISODES})
+    return cfg
 
 
 def _flat(state: Any, prefix: str = "") -> dict[str, list[float]]:

@@ -64,7 +64,7 @@ def test_loop_episode_matches_in_process_rollout(gear_setup, deterministic):
                                      None if deterministic else np.random.default_rng(noise))
     spec = EpisodeSpec(episode_id=1, policy_version=1, duration=cfg.episode_seconds,
                        decision_period=cfg.decision_period, control_period=0.001, sigma=sigma,
-                       noise_seed=noise, x_goal=trainer.x_ref, weights=RewardWeights.from_config(cfg),
+                       noise_seed=noise, x_goal=trainer.x_ref, weights=RewardWeights(),
                        chunk_decisions=7)
     run = run_loop_episode(loop, env, spec, start)
     assert run.K == len(ref.reward) == 30
@@ -181,7 +181,7 @@ def test_effort_of_a_driver_that_compensates_gravity_leaves_gravity_alone(gear_s
     loop.set_policy(trainer.policy.to_params(version=1))
     spec = EpisodeSpec(episode_id=2, policy_version=1, duration=cfg.episode_seconds,
                        decision_period=cfg.decision_period, control_period=0.001, sigma=None, noise_seed=0,
-                       x_goal=trainer.x_ref, weights=RewardWeights.from_config(cfg), chunk_decisions=7)
+                       x_goal=trainer.x_ref, weights=RewardWeights(), chunk_decisions=7)
     env.reset(seed=1234)
     run = EpisodeRun(spec)
     stamp = CLOCK[0] = CLOCK[0] + 1_000_000_000

@@ -22,7 +22,8 @@ from sim_bridge_node.env import InsertionEnv
 from sim_bridge_node.scripted_insertion import push_torque
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
-FRICTION_YAML = CONFIG / "gear_learn_friction.yaml"
+FRICTION_OVERLAY = CONFIG / "friction.yaml"
+FRICTION_YAML = [CONFIG / "gear_learn.yaml", FRICTION_OVERLAY]  # the task file, then the overlay
 RANGES = FrictionRanges((0.2, 1.2), (0.0, 0.2))
 SEEDS = (0, 7, 123_456, EVAL_SEED_BASE + 3)
 TINY = {"iterations": 1, "rollouts_per_iter": 2, "episode_seconds": 0.05, "eval_episodes": 1}
@@ -96,12 +97,10 @@ def test_bad_ranges_are_refused(coulomb, viscous, words):
 def test_the_trainer_config_reads_the_ranges_and_refuses_a_fixed_start_with_random_friction():
     cfg = TrainConfig.from_sources(FRICTION_YAML)
     assert cfg.friction_ranges() == RANGES
-    # gear_learn_friction.yaml is gear_learn.yaml plus the two ranges, without the force bound (the
-    # robot's controller has none), with the spread it was measured with (0.5, no settling), nothing else
+    # the overlay adds the two ranges and turns the force bound off (the robot's controller has none)
     assert cfg == TrainConfig.from_sources(CONFIG / "gear_learn.yaml",
                                            {"friction_coulomb": "0.2, 1.2", "friction_viscous": "[0.0, 0.2]",
-                                            "potential_force_bound": 0.0, "param_sigma_gains": 0.5,
-                                            "param_settle_rule": "mean", "param_sigma_settle": 1.0})
+                                            "potential_force_bound": 0.0})
     assert not TrainConfig().friction_ranges().enabled  # off by default
     assert TrainConfig(friction_coulomb=[0, 1]).friction_coulomb == [0.0, 1.0]  # YAML [0, 1]: ints
     with pytest.raises(ValueError, match="start: fixed"):
@@ -148,7 +147,7 @@ def test_the_sim_node_applies_the_trainers_friction_for_a_seed(ros_args):
     and /diagnostics carries the draw."""
     from sim_bridge_node.node import SimBridgeNode
 
-    ros_args("--params-file", str(FRICTION_YAML))
+    ros_args("--params-file", str(FRICTION_YAML[0]), "--params-file", str(FRICTION_YAML[1]))
     node = SimBridgeNode()
     try:
         runner = Trainer(TrainConfig.from_sources(FRICTION_YAML, TINY)).runner
@@ -189,7 +188,7 @@ def test_the_robot_run_refuses_a_task_file_with_simulated_friction(tmp_path, cap
     from nf_bringup.robot_run import _parse
 
     with pytest.raises(SystemExit):
-        _parse(["--config", str(FRICTION_YAML), "--out", str(tmp_path)])
+        _parse(["--config", str(FRICTION_OVERLAY), "--out", str(tmp_path)])
     assert "randomizes the simulated joint friction" in capsys.readouterr().err
     args = _parse(["--config", str(CONFIG / "gear_learn.yaml"), "--out", str(tmp_path)])
     assert args.config.name == "gear_learn.yaml"

@@ -14,12 +14,13 @@ from nf_bags import bagfile, info, reader
 from nf_bags.writer import BagWriter
 
 from nf_bringup.run_summary import arm_lines
-from nf_bringup.stack import ARM_PARAMS_FILE, node_commands, policy_ready, recorder_ready
+from nf_bringup.stack import node_commands, policy_ready, recorder_ready
 
 from ros_testing import REPO
 
 SAMPLE = REPO / "bags" / "sample"
 CONFIG = REPO / "config" / "gear_learn.yaml"
+FILES = [str(REPO / "config" / "sim.yaml"), str(CONFIG)]  # the simulated stack's settings, then the task's
 
 
 def _after(argv: list[str], flag: str) -> list[str]:
@@ -27,28 +28,29 @@ def _after(argv: list[str], flag: str) -> list[str]:
 
 
 def test_without_arms_the_commands_are_the_single_arm_ones(tmp_path):
-    cmds = node_commands(CONFIG, tmp_path, 3)
+    cmds = node_commands([CONFIG], tmp_path, 3)
     assert set(cmds) == {"arm", "learner", "recorder"}
-    assert cmds["arm"] == [sys.executable, "-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", str(CONFIG),
-                           "-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0"]
+    assert cmds["arm"] == [sys.executable, "-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", FILES[0],
+                           "--params-file", FILES[1]]
     assert not any("learner_node:arms" in a for a in cmds["learner"])
-    assert not (tmp_path / ARM_PARAMS_FILE).exists()
+    assert "learner_node:iterations:=3" in cmds["learner"]
+    assert not any("iterations" in a for a in node_commands([CONFIG], tmp_path)["learner"])  # the file's
+    lockstep = yaml.safe_load(Path(FILES[0]).read_text())["/**/nf_controller"]["ros__parameters"]
+    assert lockstep["idle_mode"] == "pause" and lockstep["max_consecutive_misses"] == 0
     assert recorder_ready([""]) == ("recording /joint_states (", "recording /effort_controller/commands (",
                                     "recording /rollouts (")
 
 
 def test_arms_get_a_namespace_the_lockstep_file_and_the_learner_their_names(tmp_path):
-    cmds = node_commands(CONFIG, tmp_path, 2, arms=3)
+    cmds = node_commands([CONFIG], tmp_path, 2, arms=3)
     assert set(cmds) == {"arm0", "arm1", "arm2", "learner", "recorder"}
     for i in range(3):
         argv = cmds[f"arm{i}"]
         assert argv[1:3] == ["-m", "nf_bringup.sim_stack"]
         assert _after(argv, "-r") == [f"__ns:=/arm{i}"]
-        # -p nf_controller:... would not reach a namespaced node: the second file, after the config, does
-        assert _after(argv, "--params-file") == [str(CONFIG), str(tmp_path / ARM_PARAMS_FILE)]
+        # the lockstep settings reach a namespaced node through config/sim.yaml's /**/nf_controller section
+        assert _after(argv, "--params-file") == FILES
         assert "-p" not in argv
-    section = yaml.safe_load((tmp_path / ARM_PARAMS_FILE).read_text())["/**/nf_controller"]["ros__parameters"]
-    assert section == {"idle_mode": "pause", "max_consecutive_misses": 0}
     learner = cmds["learner"]
     assert "learner_node:arms:=['/arm0','/arm1','/arm2']" in learner
     assert "learner_node:policy_subscribers:=2" in learner  # per arm: its controller and the recorder
@@ -57,7 +59,7 @@ def test_arms_get_a_namespace_the_lockstep_file_and_the_learner_their_names(tmp_
     assert len(ready) == 9 and "recording /arm2/rollouts (" in ready
     assert policy_ready(["/arm0", "/arm1"]) == ("recording /arm0/policy_parameters (",
                                                 "recording /arm1/policy_parameters (")
-    separate = node_commands(CONFIG, tmp_path, 2, composed=False, arms=2)
+    separate = node_commands([CONFIG], tmp_path, 2, composed=False, arms=2)
     assert set(separate) == {"arm0-sim", "arm0-controller", "arm1-sim", "arm1-controller", "learner", "recorder"}
     assert _after(separate["arm1-sim"], "-r") == ["__ns:=/arm1"]
 

@@ -45,12 +45,8 @@ def test_task_defaults_follow_the_paper():
         ({"learning_rate": 0.0}, "learning_rate must be > 0"),
         ({"minibatch_size": 0}, "minibatch_size must be in"),
         ({"n_flow": 0}, "n_flow must be in"),
-        ({"activation": "relu"}, "activation must be one of"),
+        ({"param_elite": "succeeded"}, "param_elite must be one of"),
         ({"flow_init": "zeros"}, "flow_init must be one of"),
-        ({"baseline": "critic"}, "baseline must be one of"),
-        ({"adv_norm": "whiten"}, "adv_norm must be one of"),
-        ({"reward_a": 0.0}, "reward_a must be > 0"),
-        ({"reward_velocity": -0.1}, "reward_velocity must be >= 0"),
         ({"start": "sometimes"}, "start must be one of"),
         ({"stiffness": 0.0}, "stiffness must be > 0"),
         ({"eval_every": -1}, "eval_every must be in"),
@@ -109,20 +105,26 @@ def test_none_resets_to_task_default_and_table_lists_every_field():
         assert f"| {name} " in table
 
 
-def test_gear_learn_yaml_is_gear_yaml_with_the_documented_sets():
-    """docs/results/gear_learned ran nf_report on gear.yaml with these --set values (S, D learned); the
-    flow's settings of docs/results/gear_flow, its force bound and the wide-then-settled spread come on top:
-    gear_learn.yaml is exactly those."""
-    sets = {"stiffness_axial": "none", "flow_init": "identity", "gains": "learned", "exploration": "params",
-            "param_sigma_gains": "0.5", "param_lr": "0.1", "param_sigma_lr": "0.01", "param_sigma_decay": "0.97"}
-    flow = {"param_sigma_flow": "0.05", "flow_input_scale": "0.05", "param_flow": "subspace", "param_flow_dim": "8",
-            "param_ratio": "group", "param_step": "current", "param_adv_scale": "running",
-            "potential_force_bound": "60"}
-    spread = {"param_sigma_gains": "0.7", "param_settle_rule": "batch", "param_settle_from": "0.6",
-              "param_settle_success": "0.9", "param_sigma_settle": "0.8"}
+def test_overlays_layer_over_the_task_file_and_later_files_win():
+    """An overlay (a short file after the task file) changes only what it names."""
     learn = TrainConfig.from_sources(CONFIG_DIR / "gear_learn.yaml")
-    assert learn == TrainConfig.from_sources(CONFIG_DIR / "gear.yaml", sets | flow | spread)
+    arm = TrainConfig.from_sources([CONFIG_DIR / "gear_learn.yaml", CONFIG_DIR / "franka_learn.yaml"])
+    friction = TrainConfig.from_sources([CONFIG_DIR / "gear_learn.yaml", CONFIG_DIR / "friction.yaml"])
+    changed = {k for k, v in arm.to_dict().items() if learn.to_dict()[k] != v}
+    assert changed == {"param_elite", "param_sigma_jump", "param_sigma_gains", "param_settle_rule",
+                       "param_sigma_settle"}
+    changed = {k for k, v in friction.to_dict().items() if learn.to_dict()[k] != v}
+    assert changed == {"friction_coulomb", "friction_viscous", "potential_force_bound"}
+    assert learn.iterations == 30  # make run's
     assert learn.stiffness_matrix().tolist() == [[300.0, 0.0, 0.0], [0.0, 300.0, 0.0], [0.0, 0.0, 300.0]]
+
+
+def test_a_stored_run_with_a_removed_setting_is_read_when_it_used_what_is_now_plain():
+    stored = {**TrainConfig(task="gear").to_dict(), "adv_norm": "standardize", "param_ratio": "joint",
+              "exploration": "action"}
+    assert "adv_norm" not in TrainConfig.with_defaults(stored)
+    with pytest.raises(ValueError, match=r"removed settings.*adv_norm='center'"):
+        TrainConfig.with_defaults({**stored, "adv_norm": "center"})
 
 
 def test_goal_sets_the_policys_x_ref_and_the_reward_goal():

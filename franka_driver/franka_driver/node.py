@@ -55,7 +55,7 @@ PARAMETERS = {
     "start_position": (_D.start_position.tolist(), "m, TCP position the reset motion drives to before each episode"),
     "fixture_position": (_D.fixture_position.tolist(),
                          "m, the fixture's mouth (insertion axis along -z) in the base frame"),
-    "goal": ([0.0], "m, x_ref an episode's policy must have, measured on the fixture ([0.0] or empty: not checked)"),
+    "goal": ([0.0], "m, x_ref an episode's policy must have: the fixture's goal ([0.0] or empty: not checked)"),
     "goal_tolerance": (0.001, "m, largest difference between the policy's x_ref and goal"),
     "fixture_radius": (_D.fixture_radius, "m, lateral distance from the fixture axis that counts as inside"),
     "success_depth": (_D.success_depth, "m below the fixture mouth that counts as success"),

@@ -21,32 +21,27 @@ from typing import Any
 import numpy as np
 import yaml
 
-from nf_core.flow_spec import ACTIVATIONS, FLOW_INITS
+from nf_core.flow_spec import FLOW_INITS
 from nf_core.friction import FrictionRanges
-from nf_core.reward import DEFAULT_WEIGHTS
 
 TASKS = ("gear", "peg", "block", "gear_clamp")
 POLICIES = ("nf", "mlp")
-MLP_ACTIVATIONS = ("tanh", "gelu")
-BASELINES = ("linear", "value")
-ADV_NORMS = ("standardize", "center", "none")
 STARTS = ("random", "fixed")
-PLANES = ("vertical", "horizontal")
 GAINS = ("fixed", "learned")
 EXPLORATIONS = ("action", "params")
-PARAM_FLOWS = ("all", "output", "subspace")
-PARAM_STEPS = ("initial", "current")
-PARAM_OPTIMIZERS = ("adam", "sgd")
-PARAM_RATIOS = ("joint", "group")
-PARAM_ADV_SCALES = ("batch", "running")
-PARAM_SPREAD_SIGNALS = ("none", "pair_mean")
+SETTLE_RULES = ("mean", "batch")
+ELITES = ("none", "minority_returns")
 PHYSICS_DT = 0.001  # s, the simulator's (and controller's) step
+# Fixed parts of the method (not settings): the flow's s/t activation, the MLP policy's size, the
+# advantage normalisation (standardised over the batch) and the baseline (a linear feature fit).
+FLOW_ACTIVATION = "gelu"
+MLP_HIDDEN = 64
+MLP_ACTIVATION = "tanh"
 
 # Paper settings per task (Khader et al., ICRA 2021); used for the fields left at None.
 TASK_DEFAULTS: dict[str, dict[str, float | int]] = {
     "gear": {"episode_seconds": 5.0, "sigma_init": 5.0, "n_flow": 1, "n_hidden": 16, "stiffness": 4.0, "damping": 1.0},
     "peg": {"episode_seconds": 5.0, "sigma_init": 1.0, "n_flow": 2, "n_hidden": 16, "stiffness": 1.0, "damping": 1.0},
-    # the gear task with a clamp across the approach (no paper values: the gear's)
     "gear_clamp": {"episode_seconds": 5.0, "sigma_init": 5.0, "n_flow": 1, "n_hidden": 16, "stiffness": 4.0,
                    "damping": 1.0},
     "block": {"episode_seconds": 4.0, "sigma_init": 2.0, "n_flow": 2, "n_hidden": 8, "stiffness": 1.0, "damping": 1.0},
@@ -55,213 +50,126 @@ TASK_DEFAULTS: dict[str, dict[str, float | int]] = {
 YAML_SHARED = "/**"
 YAML_NODE = "learner_node"
 
+# Settings that were removed, with what replaced them: a stored run (checkpoint, config.json) that has
+# one is read if its value is what the code now always does, refused otherwise (docs/results/removed_settings.md).
+REMOVED_SETTINGS: dict[str, object] = {
+    "activation": FLOW_ACTIVATION, "mlp_hidden": MLP_HIDDEN, "mlp_activation": MLP_ACTIVATION,
+    "baseline": "linear", "adv_norm": "standardize", "vf_coef": None, "value_hidden": None,
+    "max_grad_norm": 0.0, "target_kl": 0.0, "block_plane": "vertical", "damping_axial": None,
+    "reward_w": 1.0, "reward_v": 2.0, "reward_a": 1e-5, "reward_velocity": 0.1, "reward_action": 1e-3,
+    "param_lr_flow": 0.0, "param_optimizer": "adam", "param_spread_signal": "none", "param_step": "current",
+    "param_adv_scale": "running", "param_ratio": "group", "param_flow": "subspace", "param_settle_success": 0.9,
+    "init_sigma_scale": 1.0,
+}
+
 
 @dataclass
 class TrainConfig:
-    """All settings of one training run (NF-PPO or MLP-PPO on one task)."""
+    """All settings of one training run (NF-PPO or MLP-PPO on one task); docs/learner.md."""
 
+    # --- task --------------------------------------------------------------------------------------
     task: str = "gear"
-    """Task: gear (main), peg (peg-in-hole), block (2-D block insertion, no arm) or gear_clamp (the gear
-    started behind a clamp it must be lifted over)."""
-    policy: str = "nf"
-    """Policy parameterisation: nf (stable normalizing-flow controller) or mlp (plain Gaussian MLP)."""
-    sigma_init: float | None = None
-    """Initial std of the Gaussian action noise, N (None: paper value, gear 5, peg 1, block 2)."""
-    seed: int = 0
-    """Seed of the policy initialisation and of every random draw of the run."""
-    iterations: int = 100
-    """PPO iterations (each: rollouts_per_iter episodes, then one update)."""
-    rollouts_per_iter: int = 15
-    """Episodes collected per iteration."""
+    """gear | peg | block (2-D, no arm) | gear_clamp (the gear behind a clamp)."""
     episode_seconds: float | None = None
-    """Episode length, s of simulated time (None: gear 5, peg 5, block 4)."""
+    """s of simulated time per episode (None: gear 5, peg 5, block 4)."""
     decision_period: float = 0.01
-    """RL decision period, s: the policy noise is drawn once per period and held (multiple of 1 ms)."""
+    """s; reward and log period, and the hold time of the action noise (a multiple of 1 ms)."""
     start: str = "random"
-    """Start states: random (joints ~ N(q_mean, 0.2 rad); block ~ N(mean, diag 50 mm, 100 mm)) or fixed."""
-    block_plane: str = "vertical"
-    """Block task only: vertical (gravity along the insertion, compensated) or horizontal."""
+    """random (joints ~ N(q_mean, 0.2 rad); block ~ N(mean, diag 50 mm, 100 mm)) | fixed."""
+    goal: list[float] | None = None
+    """m, base frame: the controller's x_ref and the reward's goal (3 values; block: x, z). None: the task's."""
+    friction_coulomb: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    """Nm (block: N), [lo, hi]: joint Coulomb friction drawn per joint and episode from its start seed."""
+    friction_viscous: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    """Nm s/rad, [lo, hi]: viscous joint friction added to the arm's own, drawn like friction_coulomb."""
+
+    # --- policy ------------------------------------------------------------------------------------
+    policy: str = "nf"
+    """nf (the stable normalizing-flow controller) | mlp (a plain Gaussian MLP, for comparison)."""
     n_flow: int | None = None
-    """Flow elements (2 coupling layers each) (None: gear 1, peg 2, block 2)."""
+    """flow elements, 2 coupling layers each (None: gear 1, peg 2, block 2)."""
     n_hidden: int | None = None
-    """Hidden units of the flow's s/t networks (None: gear 16, peg 16, block 8)."""
-    activation: str = "gelu"
-    """Activation of the flow's s/t networks (gelu, tanh, softplus)."""
+    """hidden units of the coupling layers' s/t networks (None: gear 16, peg 16, block 8)."""
     flow_init: str = "random"
-    """Flow initialisation: random (torch's default for every layer) or identity (output layers of
-    the s/t networks zero, so the untrained controller is the impedance law with S and D)."""
-    stiffness: float | None = None
-    """S = stiffness * I in the flow's latent space (None: gear 4, peg 1, block 1)."""
-    damping: float | None = None
-    """D = damping * I in the flow's latent space (None: 1 for all tasks)."""
-    stiffness_axial: float | None = None
-    """S entry of the last (insertion, z) axis, replacing ``stiffness`` there (None: isotropic S)."""
-    damping_axial: float | None = None
-    """D entry of the last (insertion, z) axis, replacing ``damping`` there (None: isotropic D)."""
-    potential_force_bound: float = 0.0
-    """Bound on the flow potential's pull, N in the latent space (``TorqueLawConfig.potential_force_bound``):
-    beyond it the potential grows linearly, so a stiff policy started far from x_ref does not drive the
-    joints into their torque limits, where the stability proof does not reach. 0: off. A shared (``/**``)
-    setting: the controller node reads the same key. Parameter exploration only."""
-    stiffness_floor: float = 0.0
-    """Learned gains: no diagonal entry of S (N/m, latent) below it, in every draw, the mean and a loaded
-    policy (lifted onto it). An arm's joint friction stalls a soft spring that a frictionless simulation
-    inserts with (docs/hardware.md); run_robot sets 250 for a policy from a checkpoint. 0: off."""
-    gains: str = "fixed"
-    """NF policy: fixed (S, D as set above) or learned (their diagonals, through exp, start at the values
-    above: every value stays symmetric positive definite, so the stability proof holds throughout)."""
-    exploration: str = "action"
-    """NF policy: action (Gaussian force noise held per decision; PPO per decision) or params (every rollout
-    runs the deterministic controller with parameters drawn around the policy's; PPO per rollout)."""
-    param_sigma_gains: float = 0.3
-    """exploration=params: initial std of the perturbation of ln S and ln D (per diagonal entry)."""
-    param_sigma_flow: float = 0.0
-    """exploration=params: initial std of the perturbation of every flow weight (0: the flow is not explored
-    and stays as initialised)."""
-    param_flow: str = "all"
-    """exploration=params, param_sigma_flow > 0: which flow weights are explored: all, or output (the output
-    layers of the s/t networks; the hidden layers stay as initialised, random features of the input), or
-    subspace (param_flow_dim fixed random directions in those output layers' weights)."""
-    param_flow_dim: int = 8
-    """exploration=params, param_flow=subspace: number of explored directions in the flow's weights."""
+    """random (torch's default) | identity (phi(x) = x: the prior is the impedance law with S and D)."""
     flow_input_scale: float = 0.0
-    """NF policy: m; > 0: the flow's coupling nets see (x - x_ref) / flow_input_scale and translate in
-    units of it (the weights are initialised, and explored, in those units; the controller receives the
-    equivalent physical weights). 0: the nets see x in metres."""
-    param_lr: float = 0.05
-    """exploration=params: Adam step size of the parameter-space mean, in units of its exploration std."""
-    param_lr_flow: float = 0.0
-    """exploration=params: the flow mean's Adam step in units of its std (0: param_lr)."""
-    param_optimizer: str = "adam"
-    """exploration=params: the mean's optimiser. adam: every coordinate moves about param_lr stds per step
-    whatever its gradient's size; sgd: the search-gradient step of evolution strategies, param_lr stds per
-    step times the correlation of the advantages with that coordinate's draws, so coordinates the returns
-    do not follow stay put (``param_explore.make_param_optimizer``)."""
-    param_ratio: str = "joint"
-    """exploration=params: one PPO ratio over all explored parameters (joint) or one per group (group:
-    gains and flow; the distribution factorises, so each is that group's own likelihood ratio)."""
-    param_adv_scale: str = "batch"
-    """exploration=params: the pairs' advantages are divided by this iteration's RMS (batch) or by the mean
-    RMS of all iterations so far (running: iterations whose rollouts differ little step little)."""
-    param_spread_signal: str = "none"
-    """exploration=params: what the PPO update gives the exploration stds. none: the pairs' advantages
-    only; they are antisymmetric in the mirrored draws, so the stds' gradient is zero at the start of
-    each update and ``param_sigma_lr`` moves them by noise. pair_mean: both members of a pair also get
-    the pair's mean return less the batch's (as PGPE's std update, Sehnke et al. 2010): the spread
-    narrows when the wider draws do worse and widens when they do better; the mean's gradient is
-    unchanged (a symmetric advantage cancels in it)."""
-    param_step: str = "initial"
-    """exploration=params: the mean's Adam step is param_lr times the group's initial std (initial), or its
-    std at each update (current: the step shrinks with the exploration, so one update moves the mean by
-    the same number of stds, and the same KL, late as early)."""
-    param_sigma_lr: float = 0.05
-    """exploration=params: Adam step size of the exploration log-stds (0: the stds stay fixed)."""
-    param_sigma_decay: float = 1.0
-    """exploration=params: factor on the exploration stds after every update (1: none), so the rollouts
-    come closer to the learned controller as training goes on."""
-    param_sigma_settle: float = 1.0
-    """exploration=params: an extra factor on the exploration stds after an update whose rollout of the mean
-    itself (the odd last rollout) succeeded while fewer than ``param_settle_success`` of the draws did
-    (1: off). Once the mean inserts, the draws that fail are only spread: they narrow at this rate then,
-    and not before (a faster plain decay narrows them before the mean has arrived)."""
-    param_settle_success: float = 0.9
-    """exploration=params: the draws' success rate below which ``param_sigma_settle`` applies."""
-    param_settle_rule: str = "mean"
-    """exploration=params: when ``param_sigma_settle`` applies. mean: the mean's own rollout succeeded (a fixed
-    start: that rollout says the mean has arrived) | batch: the whole batch's success rate is at least
-    ``param_settle_from`` (random starts: one rollout of the mean from its own start says little)."""
-    param_settle_from: float = 0.6
-    """exploration=params, ``param_settle_rule`` batch: the batch success rate from which the spread settles."""
-    param_elite: str = "none"
-    """exploration=params: none (PPO's update only) | succeeded: after an update whose rollout of the mean
-    (the odd last one) failed while some draws succeeded, the mean moves to the average of the succeeded
-    draws (a cross-entropy step: one update goes where PPO's clipped trust region needs several) | returns: as
-    succeeded, and while no draw succeeds, to the best quarter of the draws by return if each beat the mean's
-    own rollout | minority: after any update in which some rollouts succeeded but fewer than half, the mean's
-    own included, the mean moves to the average of the rollouts that succeeded (so a mean that inserts at the
-    edge of the gains that do is not moved off them by PPO's step, and moves inwards when draws beyond it
-    insert too) | minority_returns: as minority, and while no rollout succeeds, as returns. Any draw is a
-    stable controller, so the jump keeps every rollout stable."""
-    param_sigma_jump: float = 1.0
-    """exploration=params: a factor on the exploration stds when ``param_elite`` moves the mean onto rollouts
-    that succeeded (not by return; 1: off). Fewer than half of the draws inserting says the gains that insert
-    are a narrow set next to the spread: the next draws are narrowed at once, not an update later."""
-    mlp_hidden: int = 64
-    """MLP policy: units per hidden layer (two hidden layers)."""
-    mlp_activation: str = "tanh"
-    """MLP policy: hidden activation (tanh or gelu)."""
+    """m; > 0: the coupling nets see (x - x_ref) / flow_input_scale (weights initialised and explored in
+    those units). 0: they see x in m."""
+    stiffness: float | None = None
+    """N/m: S = stiffness * I in the flow's latent space (None: gear 4, peg 1, block 1)."""
+    stiffness_axial: float | None = None
+    """N/m: S entry of the insertion (z) axis, replacing stiffness there (None: isotropic)."""
+    damping: float | None = None
+    """N s/m: D = damping * I in the latent space (None: 1)."""
+    gains: str = "fixed"
+    """fixed (S, D as set) | learned (their diagonals through exp: always positive definite)."""
+    potential_force_bound: float = 0.0
+    """N, latent space: the potential's pull is bounded to this, growing linearly beyond (0: off).
+    Parameter exploration only; docs/controller.md."""
+    stiffness_floor: float = 0.0
+    """N/m: no learned diagonal entry of S below it, in any draw, the mean or a loaded policy (0: off)."""
+    sigma_init: float | None = None
+    """N: initial std of the action noise (exploration: action) (None: gear 5, peg 1, block 2)."""
+
+    # --- PPO ---------------------------------------------------------------------------------------
     learning_rate: float = 2.5e-4
-    """Adam step size."""
+    """Adam step size (action exploration)."""
     update_epochs: int = 10
-    """Passes over the batch per PPO update."""
+    """passes over the batch per update."""
     minibatch_size: int = 64
-    """Decisions per gradient step."""
+    """decisions per gradient step (action exploration)."""
     clip_coef: float = 0.2
-    """PPO ratio clip epsilon."""
+    """PPO's ratio clip epsilon."""
     gamma: float = 0.99
-    """Discount per decision."""
+    """discount per decision."""
     gae_lambda: float = 0.97
     """GAE lambda."""
-    adv_norm: str = "standardize"
-    """Advantage normalisation over the whole batch: standardize (centre, divide by std), center, none."""
-    baseline: str = "linear"
-    """Baseline: linear (least-squares features of observation and time, as the authors) or value (MLP)."""
-    vf_coef: float = 0.5
-    """Weight of the value loss (baseline=value only)."""
-    value_hidden: int = 64
-    """Units per hidden layer of the value network (baseline=value only)."""
-    max_grad_norm: float = 0.0
-    """Clip the gradient norm to this value (0: no clipping)."""
-    target_kl: float = 0.0
-    """Stop an update once a minibatch shows approx_kl > 1.5 x this before its step, as
-    stable-baselines3 does (0: never)."""
-    reward_w: float = DEFAULT_WEIGHTS.w
-    """Reward weight w of the squared distance |d|^2 (defaults and meanings: ``nf_core.reward``)."""
-    reward_v: float = DEFAULT_WEIGHTS.v
-    """Reward weight v of the log-distance term v ln((|d|^2 + a) / a)."""
-    reward_a: float = DEFAULT_WEIGHTS.a
-    """Offset a of the log-distance term, m^2."""
-    reward_velocity: float = DEFAULT_WEIGHTS.velocity
-    """Reward weight of the squared TCP speed |xdot|^2 (m/s)."""
-    reward_action: float = DEFAULT_WEIGHTS.action
-    """Reward weight of the squared action force |u|^2 (N)."""
-    friction_coulomb: list[float] = field(default_factory=lambda: [0.0, 0.0])
-    """Simulation: Coulomb joint friction (MuJoCo frictionloss) [lo, hi], Nm (block: N), drawn per joint
-    uniformly for every episode from its start seed (``nf_core.friction``), held-out evaluation starts
-    included; shared (``/**``): the sim node applies the same draw over ROS. [0, 0]: none (the default)."""
-    friction_viscous: list[float] = field(default_factory=lambda: [0.0, 0.0])
-    """Simulation: viscous joint friction [lo, hi], Nm s/rad, added to the arm's own damping, drawn like
-    ``friction_coulomb`` (same stream, after it). [0, 0]: none (the default)."""
+
+    # --- exploration -------------------------------------------------------------------------------
+    exploration: str = "action"
+    """action (force noise, PPO per decision) | params (each rollout a deterministic controller with
+    parameters drawn around the policy's; PPO per rollout; docs/learner.md)."""
+    param_sigma_gains: float = 0.3
+    """params: initial std of ln S and ln D per diagonal entry."""
+    param_sigma_flow: float = 0.0
+    """params: initial std of the flow's explored coordinates (normalised weights; 0: flow not explored)."""
+    param_flow_dim: int = 8
+    """params: number of fixed random directions explored in the s/t output layers' weights."""
+    param_lr: float = 0.05
+    """params: Adam step of the mean, in units of its current std."""
+    param_sigma_lr: float = 0.05
+    """params: Adam step of the exploration log-stds (0: stds fixed)."""
+    param_sigma_decay: float = 1.0
+    """params: factor on the stds after every update, in (0, 1]."""
+    param_sigma_settle: float = 1.0
+    """params: extra factor on the stds after an update that meets param_settle_rule, in (0, 1] (1: off)."""
+    param_settle_rule: str = "mean"
+    """params: mean (the mean's own rollout, the odd last one, inserted while < 90 % of the draws did) |
+    batch (param_settle_from <= batch success < 90 %)."""
+    param_settle_from: float = 0.6
+    """params, settle rule batch: the batch success rate from which the spread settles."""
+    param_elite: str = "none"
+    """params: none | minority_returns (a cross-entropy step after PPO's: while some but fewer than half
+    of the rollouts insert, the mean moves to their average; while none does, to the best quarter of the
+    draws by return if each beat the mean's own rollout). Needs an odd rollouts_per_iter."""
+    param_sigma_jump: float = 1.0
+    """params: factor on the stds when param_elite moves the mean onto rollouts that inserted (1: off)."""
+
+    # --- run ---------------------------------------------------------------------------------------
+    seed: int = 0
+    """seed of the policy initialisation and of every random draw of the run."""
+    iterations: int = 100
+    """PPO iterations, each rollouts_per_iter episodes and one update."""
+    rollouts_per_iter: int = 15
+    """episodes per iteration."""
     eval_episodes: int = 10
-    """Final evaluation: episodes of the deterministic controller from held-out starts (1 if start=fixed)."""
+    """episodes of the deterministic controller from held-out starts, before and after training."""
     eval_every: int = 0
-    """Also evaluate the deterministic controller on the same held-out starts after every ``eval_every``-th
-    iteration (0: only before and after training): the metrics' ``eval_success``, ``eval_return`` and
-    ``eval_final_distance`` (NaN in the other rows), ``evaluations/iteration_NNNN.json`` and the
-    curves' markers. It draws nothing from the training's random streams; over ROS it costs
-    ``eval_episodes`` episodes of the arm each time."""
-    goal: list[float] | None = None
-    """The controller's x_ref and the reward's goal, m in the robot's base frame (3 values; block: x, z).
-    None: the simulated task's goal (gear and peg [0.5, 0, 0.07]). On a real cell, the goal measured
-    there (the Franka driver's ``goal``): the simulated one would aim at wherever the simulated
-    fixture happens to be."""
+    """also evaluate after every eval_every-th iteration (0: only before and after)."""
     init_checkpoint: str = ""
-    """A new run that starts from another run's policy: that run's ``checkpoint.pt`` ('': the policy as
-    the settings above initialise it). Loaded as learned: the flow weights, S and D, and the exploration
-    spread as the checkpoint left it (the action noise's log-std; with exploration=params the parameter
-    stds, decayed and learned, not ``param_sigma_*``: fine-tuning explores near the policy). Fresh: the
-    iteration counter, optimiser, baseline, random streams, metrics and run folder. x_ref is this run's
-    goal (``goal``, else the task's), never the checkpoint's. Its architecture (policy; n_flow, n_hidden,
-    activation or mlp_hidden, mlp_activation; the task's dimension) must be this config's. Read only if
-    the run folder has no checkpoint of its own (that one is resumed)."""
-    init_sigma_scale: float = 1.0
-    """With ``init_checkpoint``: factor on the loaded exploration stds (parameter stds, or the action
-    noise), in (0, 1]. Below 1 the rollouts on the new system stay closer to the loaded controller and,
-    the mean's step being measured in stds (``param_step``), each update moves it less."""
+    """a run's checkpoint.pt to start from (its flow, S, D and spread; this run's goal) ('': none)."""
     init_target_kl: float = 0.02
-    """With ``init_checkpoint``: ``target_kl`` of the fine-tuning run, in place of ``target_kl`` (0: that
-    one). A loaded policy that already inserts is kept near: without it one update moved a zero-shot
-    10/10 policy to 4/10 on franky-sim (approx_kl 0.5-1.6 per update; docs/measurements.md)."""
+    """with init_checkpoint: an update stops once approx_kl exceeds 1.5 x this (0: never)."""
 
     @property
     def eval_starts(self) -> int:
@@ -270,8 +178,8 @@ class TrainConfig:
 
     @property
     def update_target_kl(self) -> float:
-        """The ``target_kl`` the updates use: ``init_target_kl`` when fine-tuning, else ``target_kl``."""
-        return self.init_target_kl if self.init_checkpoint and self.init_target_kl > 0.0 else self.target_kl
+        """The ``target_kl`` the updates use: ``init_target_kl`` when fine-tuning, else 0 (no early stop)."""
+        return self.init_target_kl if self.init_checkpoint else 0.0
 
     def __post_init__(self) -> None:
         self._coerce_types()
@@ -293,24 +201,14 @@ class TrainConfig:
         """Raise ``ValueError`` naming the first bad setting and why."""
         _choice("policy", self.policy, POLICIES)
         _choice("start", self.start, STARTS)
-        _choice("block_plane", self.block_plane, PLANES)
-        _choice("activation", self.activation, ACTIVATIONS)
         _choice("flow_init", self.flow_init, FLOW_INITS)
-        _choice("mlp_activation", self.mlp_activation, MLP_ACTIVATIONS)
-        _choice("baseline", self.baseline, BASELINES)
-        _choice("adv_norm", self.adv_norm, ADV_NORMS)
         _choice("gains", self.gains, GAINS)
         _choice("exploration", self.exploration, EXPLORATIONS)
+        _choice("param_settle_rule", self.param_settle_rule, SETTLE_RULES)
+        _choice("param_elite", self.param_elite, ELITES)
         _positive("param_sigma_gains", self.param_sigma_gains)
         _non_negative("param_sigma_flow", self.param_sigma_flow)
-        _choice("param_flow", self.param_flow, PARAM_FLOWS)
-        _choice("param_step", self.param_step, PARAM_STEPS)
-        _choice("param_optimizer", self.param_optimizer, PARAM_OPTIMIZERS)
         _int_range("param_flow_dim", self.param_flow_dim, 1, 100_000)
-        _choice("param_ratio", self.param_ratio, PARAM_RATIOS)
-        _choice("param_adv_scale", self.param_adv_scale, PARAM_ADV_SCALES)
-        _choice("param_spread_signal", self.param_spread_signal, PARAM_SPREAD_SIGNALS)
-        _non_negative("param_lr_flow", self.param_lr_flow)
         _non_negative("potential_force_bound", self.potential_force_bound)
         _non_negative("stiffness_floor", self.stiffness_floor)
         if self.stiffness_floor > 0.0 and (self.gains != "learned" or self.policy != "nf"):
@@ -321,24 +219,14 @@ class TrainConfig:
         _non_negative("flow_input_scale", self.flow_input_scale)
         _positive("param_lr", self.param_lr)
         _non_negative("param_sigma_lr", self.param_sigma_lr)
-        if not 0.0 < self.param_sigma_decay <= 1.0:
-            raise ValueError(f"param_sigma_decay must be in (0, 1], got {self.param_sigma_decay}")
-        if not 0.0 < self.param_sigma_settle <= 1.0:
-            raise ValueError(f"param_sigma_settle must be in (0, 1], got {self.param_sigma_settle}")
-        if not 0.0 <= self.param_settle_success <= 1.0:
-            raise ValueError(f"param_settle_success must be in [0, 1], got {self.param_settle_success}")
-        if self.param_settle_rule not in ("mean", "batch"):
-            raise ValueError(f"param_settle_rule must be mean or batch, got {self.param_settle_rule!r}")
+        for name in ("param_sigma_decay", "param_sigma_settle", "param_sigma_jump"):
+            if not 0.0 < getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
         if not 0.0 <= self.param_settle_from <= 1.0:
             raise ValueError(f"param_settle_from must be in [0, 1], got {self.param_settle_from}")
         if self.param_sigma_settle < 1.0 and self.param_settle_rule == "mean" and self.rollouts_per_iter % 2 == 0:
             raise ValueError("param_sigma_settle with param_settle_rule mean needs an odd rollouts_per_iter: the "
                              "last rollout runs the mean")
-        if self.param_elite not in ("none", "succeeded", "returns", "minority", "minority_returns"):
-            raise ValueError("param_elite must be none, succeeded, returns, minority or minority_returns, "
-                             f"got {self.param_elite!r}")
-        if not 0.0 < self.param_sigma_jump <= 1.0:
-            raise ValueError(f"param_sigma_jump must be in (0, 1], got {self.param_sigma_jump}")
         if self.param_elite != "none" and self.rollouts_per_iter % 2 == 0:
             raise ValueError("param_elite needs an odd rollouts_per_iter: the last rollout runs the mean")
         if self.exploration == "params" and self.gains == "fixed" and self.param_sigma_flow == 0.0:
@@ -348,21 +236,15 @@ class TrainConfig:
         _positive("decision_period", self.decision_period)
         _positive("stiffness", self.stiffness)
         _positive("damping", self.damping)
-        for name in ("stiffness_axial", "damping_axial"):
-            if getattr(self, name) is not None:
-                _positive(name, getattr(self, name))
+        if self.stiffness_axial is not None:
+            _positive("stiffness_axial", self.stiffness_axial)
         _positive("learning_rate", self.learning_rate)
-        _positive("reward_a", self.reward_a)
-        for name in ("reward_w", "reward_v", "reward_velocity", "reward_action", "vf_coef", "max_grad_norm",
-                     "target_kl", "init_target_kl"):
-            _non_negative(name, getattr(self, name))
+        _non_negative("init_target_kl", self.init_target_kl)
         _int_range("seed", self.seed, 0, 2**32 - 1)
         _int_range("iterations", self.iterations, 1, 1_000_000)
         _int_range("rollouts_per_iter", self.rollouts_per_iter, 1, 100_000)
         _int_range("n_flow", self.n_flow, 1, 64)
         _int_range("n_hidden", self.n_hidden, 1, 1024)
-        _int_range("mlp_hidden", self.mlp_hidden, 1, 4096)
-        _int_range("value_hidden", self.value_hidden, 1, 4096)
         _int_range("update_epochs", self.update_epochs, 1, 10_000)
         _int_range("minibatch_size", self.minibatch_size, 1, 10_000_000)
         _int_range("eval_episodes", self.eval_episodes, 0, 100_000)
@@ -372,8 +254,6 @@ class TrainConfig:
             raise ValueError("friction_coulomb / friction_viscous are drawn from each episode's start seed; with "
                              "start: fixed there is none (every episode would get the ranges' middles): use "
                              "start: random, or give each range one value ([x, x])")
-        if not (0.0 < self.init_sigma_scale <= 1.0):
-            raise ValueError(f"init_sigma_scale must be in (0, 1], got {self.init_sigma_scale}")
         if self.init_checkpoint != self.init_checkpoint.strip():
             raise ValueError(f"init_checkpoint must be a path without leading or trailing spaces, "
                              f"got {self.init_checkpoint!r}")
@@ -413,8 +293,8 @@ class TrainConfig:
         return _diagonal(self.dim, self.stiffness, self.stiffness_axial)
 
     def damping_matrix(self) -> np.ndarray:
-        """D: ``damping`` on every axis, ``damping_axial`` (if set) on the last (insertion) axis."""
-        return _diagonal(self.dim, self.damping, self.damping_axial)
+        """D: ``damping`` on every axis."""
+        return _diagonal(self.dim, self.damping, None)
 
     @property
     def steps_per_decision(self) -> int:
@@ -432,9 +312,20 @@ class TrainConfig:
 
     @staticmethod
     def with_defaults(stored: dict[str, Any]) -> dict[str, Any]:
-        """A stored config (checkpoint, config.json) with every setting added since it was written
-        filled in by its task's default, which is what that run used."""
-        return {**TrainConfig(task=stored["task"]).to_dict(), **stored}
+        """A stored config (checkpoint, config.json) as today's settings: every setting added since it was
+        written filled in by its task's default (what that run used), and every removed setting dropped if
+        its value is what the code now always does. ``ValueError`` names a removed mode the run used."""
+        used = []
+        for name, plain in REMOVED_SETTINGS.items():
+            moot = (name.startswith("param_") and stored.get("exploration") != "params") \
+                or (name == "param_flow" and not stored.get("param_sigma_flow"))
+            if name in stored and plain is not None and stored[name] != plain and not moot:
+                used.append(f"{name}={stored[name]!r}")
+        if used:
+            raise ValueError(f"a run with removed settings ({', '.join(used)}); the last commit that had them is "
+                             "named in docs/results/removed_settings.md")
+        kept = {k: v for k, v in stored.items() if k not in REMOVED_SETTINGS}
+        return {**TrainConfig(task=stored["task"]).to_dict(), **kept}
 
     def table(self) -> str:
         """The settings as an aligned two-column text table, for the log at the start of a run."""
@@ -450,12 +341,14 @@ class TrainConfig:
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_sources(
-        cls, yaml_path: str | Path | None = None, overrides: dict[str, Any] | None = None
+        cls, yaml_path: str | Path | list[str | Path] | None = None, overrides: dict[str, Any] | None = None
     ) -> TrainConfig:
-        """Defaults < ``yaml_path`` (a task's parameters file) < ``overrides`` (values or strings)."""
+        """Defaults < ``yaml_path`` (a task's parameters file, or a list: a task file then its overlays,
+        later files win) < ``overrides`` (values or strings)."""
         values: dict[str, Any] = {}
-        if yaml_path is not None:
-            for key, value in read_yaml_params(yaml_path).items():
+        paths = [] if yaml_path is None else yaml_path if isinstance(yaml_path, list) else [yaml_path]
+        for path in paths:
+            for key, value in read_yaml_params(path).items():
                 # YAML 1.1 reads 1e-5 (no dot) as a string: parse strings of numeric settings
                 values[key] = parse_value(key, value) if isinstance(value, str) else value
         for key, value in (overrides or {}).items():

@@ -3,17 +3,18 @@
 Instead of adding force noise to the controller's output, each rollout of an iteration runs the
 deterministic flow controller with its own parameters theta drawn around the policy's
 (``theta = mu + sigma * eps``): the log-diagonals of S and D (``gains="learned"``) and, if
-``param_sigma_flow > 0``, the flow weights (all, or the s/t output layers; in normalised units if
-``flow_input_scale > 0``, see ``rescale_flow_weights``). Whatever theta is drawn, S and D stay symmetric
-positive definite and phi a bijection, so each exploration rollout is itself a provably stable,
-passive closed loop; and the exploration is coherent over the whole trajectory (a 1 N force
-sample held 10 ms barely moves the gear; a 30 % softer axis acts for five seconds).
+``param_sigma_flow > 0``, the flow weights along a few fixed random directions of the s/t output
+layers (in normalised units if ``flow_input_scale > 0``, see ``rescale_flow_weights``). Whatever
+theta is drawn, S and D stay symmetric positive definite and phi a bijection, so each exploration
+rollout is itself a provably stable, passive closed loop; and the exploration is coherent over the
+whole trajectory (a force sample held 10 ms barely moves the gear; a softer axis acts for the whole
+episode).
 
 Rollouts come in mirrored pairs ``mu +- sigma eps`` from the same start (an odd last rollout runs
 ``mu`` itself), so a pair's return difference is due to its parameters alone, not to its start:
 the advantage of each member is half the difference (Sehnke et al.'s symmetric sampling). The
-update is PPO's clipped surrogate over rollouts, with log-probability the Gaussian density of
-theta, for the mean (the policy's own parameters) and the per-group log-std.
+update (``param_ppo``) is PPO's clipped surrogate over rollouts, with log-probability the Gaussian
+density of theta, for the mean (the policy's own parameters) and the per-group log-std.
 """
 
 from __future__ import annotations
@@ -27,10 +28,8 @@ from torch import nn
 
 from nf_core.policy_params import PolicyParameters
 
-from .config import PARAM_OPTIMIZERS
 from .flow import output_layer_mask, rescale_flow_weights
 from .policy import LN_MAX_DAMPING, LN_MAX_STIFFNESS, NFPolicy
-from .ppo import approx_kl, clipped_surrogate_loss
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -40,17 +39,15 @@ class ParamExploration(nn.Module):
 
     def __init__(
         self, policy: NFPolicy, sigma_gains: float, sigma_flow: float, flow_scale: float = 0.0,
-        flow_part: str = "all",
         flow_dim: int = 8,
         seed: int = 0,
     ) -> None:
         """Explore ln S, ln D (if the policy learns its gains) with std ``sigma_gains`` per entry, and the
-        flow weights (``flow_part``: all; the s/t output layers; or ``subspace``: ``flow_dim`` fixed
-        random unit directions in the output layers' weights, drawn from ``seed``) with one shared std
-        ``sigma_flow``
-        (if > 0). ``flow_scale`` > 0: the flow is explored and learned in normalised weights (nets that
-        see (x - x_ref) / flow_scale, ``rescale_flow_weights``), so one std means the same in every
-        weight whatever the units of x."""
+        flow along ``flow_dim`` fixed random unit directions in the s/t output layers' weights (drawn from
+        ``seed``; a few mirrored pairs can estimate a gradient in a few directions, not in hundreds) with
+        one shared std ``sigma_flow`` (if > 0). ``flow_scale`` > 0: the flow is explored and learned in
+        normalised weights (nets that see (x - x_ref) / flow_scale, ``rescale_flow_weights``), so one std
+        means the same in every weight whatever the units of x."""
         super().__init__()
         self.policy = [policy]  # a list: not a submodule (its parameters belong to the policy)
         dt = policy.dtype
@@ -65,25 +62,18 @@ class ParamExploration(nn.Module):
                                                       math.log(sigma_flow) if self.explore_flow else 0.0, dtype=dt))
         self.n_gain = n_gain
         self.flow_scale = float(flow_scale)
-        if flow_part not in ("all", "output", "subspace"):
-            raise ValueError(f"flow_part must be all, output or subspace, got {flow_part!r}")
-        mask = output_layer_mask(policy.arch) if flow_part != "all" else np.ones(policy.arch.n_params, bool)
+        mask = output_layer_mask(policy.arch)
         self._flow_mask = mask
-        # the full flow in the explored coordinates; the explored entries are the mean ``flow_mu``
+        # the full flow in the explored coordinates; the mean ``flow_mu`` is the offset along the basis
         base = self._to_explored(policy.flow.to_flat())
         self.register_buffer("flow_base", torch.from_numpy(base))
-        if flow_part == "subspace":
-            # a few directions: a few mirrored pairs can estimate a gradient in them, not in hundreds
-            basis = np.random.default_rng([seed, 31]).standard_normal((int(mask.sum()), flow_dim))
-            basis /= np.linalg.norm(basis, axis=0)
-            self.register_buffer("flow_basis", torch.from_numpy(basis))
-            mu0 = np.zeros(flow_dim)
-        else:
-            self.flow_basis = None
-            mu0 = base[mask].copy()
+        basis = np.random.default_rng([seed, 31]).standard_normal((int(mask.sum()), flow_dim))
+        basis /= np.linalg.norm(basis, axis=0)
+        self.register_buffer("flow_basis", torch.from_numpy(basis))
+        mu0 = np.zeros(flow_dim)
         self.flow_mu = nn.Parameter(torch.from_numpy(mu0 if self.explore_flow else mu0[:0].copy()))
         self.n_flow = mu0.size if self.explore_flow else 0
-        # running advantage scale (param_adv_scale=running): sum and count of the iterations' pair RMS
+        # running advantage scale: sum and count of the iterations' pair RMS
         self.register_buffer("adv_rms_sum", torch.zeros((), dtype=torch.float64))
         self.register_buffer("adv_rms_count", torch.zeros((), dtype=torch.float64))
 
@@ -149,10 +139,7 @@ class ParamExploration(nn.Module):
     def flow_weights(self, explored: np.ndarray) -> np.ndarray:
         """Physical flow weights (what the controller receives) of explored-entry values ``explored``."""
         full = self.flow_base.numpy().copy()
-        if self.flow_basis is None:
-            full[self._flow_mask] = explored
-        else:
-            full[self._flow_mask] += self.flow_basis.numpy() @ explored
+        full[self._flow_mask] += self.flow_basis.numpy() @ explored
         if self.flow_scale <= 0.0:
             return full
         pol = self.policy[0]
@@ -176,8 +163,7 @@ class ParamExploration(nn.Module):
 
     def running_scale(self, raw: np.ndarray) -> float:
         """Add this iteration's pair RMS of ``raw`` (pair advantages) and return the mean pair RMS over all
-        iterations so far, this one included (0: none), to divide the advantages by
-        (``param_adv_scale=running``).
+        iterations so far, this one included (0: none), to divide the advantages by.
 
         Normalising each batch to unit size makes an iteration whose pairs differ only by the reward's
         small shaping terms (every rollout inserts) step as far as one where half of them fail: late in
@@ -243,130 +229,8 @@ def paired_advantages(returns: np.ndarray, normalize: bool = True) -> np.ndarray
     return adv / scale if scale > 0.0 and normalize else adv
 
 
-def pair_mean_advantages(returns: np.ndarray) -> np.ndarray:
-    """Each mirrored pair's mean return less the mean over the pairs, for both members (0 for an
-    unpaired last rollout and a pair with a NaN return). Symmetric within a pair: it cancels in the
-    mean's gradient and drives only the stds (PGPE's std update, Sehnke et al. 2010)."""
-    r = np.asarray(returns, dtype=np.float64)
-    adv = np.zeros_like(r)
-    m = len(r) // 2
-    mean = 0.5 * (r[0 : 2 * m : 2] + r[1 : 2 * m : 2])
-    ok = np.isfinite(mean)
-    if ok.any():
-        mean = np.where(ok, mean - mean[ok].mean(), 0.0)
-        adv[0 : 2 * m : 2] = mean
-        adv[1 : 2 * m : 2] = mean
-    return adv
-
-
 def pair_rms(advantages: np.ndarray) -> float:
     """Root mean square of the pairs' (raw) advantages: the size of this iteration's return differences."""
     a = np.asarray(advantages, dtype=np.float64)
     m = len(a) // 2
     return float(np.sqrt(np.mean(a[0 : 2 * m : 2] ** 2))) if m else 0.0
-
-
-def make_param_optimizer(
-    explorer: ParamExploration, lr: float, sigma_lr: float, lr_flow: float = 0.0, kind: str = "adam"
-) -> torch.optim.Optimizer:
-    """The optimiser of the exploration's mean and log-stds, with steps scaled per group.
-
-    ``adam``: the mean moves by about ``lr`` (the flow's: ``lr_flow`` if > 0) of its (initial) std per
-    step, the log-stds by ``sigma_lr`` (0: not optimised, the stds stay as initialised). Adam moves every
-    coordinate by about its step whatever the size of its gradient, so in the flow's ~100-1000
-    coordinates, estimated from a few mirrored pairs, a gains-sized step is mostly a random walk: the
-    flow needs its own, smaller step.
-
-    ``sgd``: plain gradient steps, the search-gradient step of evolution strategies. At the start of an
-    update the surrogate's gradient in a mean coordinate is -mean_i(A_i eps_i) / sigma (eps: the draws
-    in stds, A: advantages of unit RMS), so a learning rate of ``lr`` sigma^2 moves it by ``lr`` sigma
-    times the correlation of the advantages with that coordinate's draws: a coordinate the returns
-    follow moves, one they do not (a damping that does not matter) stays nearly where it is, instead of
-    a full Adam step in a random direction every update. The log-stds take ``sigma_lr`` times their
-    gradient."""
-    if kind not in PARAM_OPTIMIZERS:
-        raise ValueError(f"param optimizer must be one of {PARAM_OPTIMIZERS}, got {kind!r}")
-    power = 1 if kind == "adam" else 2
-    groups = []
-    pol = explorer.policy[0]
-    if explorer.explore_gains:
-        sg = float(torch.exp(explorer.log_sigma_gains.detach()).mean())
-        groups.append({"params": [pol.ln_s, pol.ln_d], "lr": lr * sg**power, "std_of": "gains", "std_power": power})
-        if sigma_lr > 0.0:
-            groups.append({"params": [explorer.log_sigma_gains], "lr": sigma_lr})
-    if explorer.explore_flow:
-        sf = float(torch.exp(explorer.log_sigma_flow.detach())[0])
-        groups.append({"params": [explorer.flow_mu], "lr": (lr_flow if lr_flow > 0.0 else lr) * sf**power,
-                       "std_of": "flow", "std_power": power})
-        if sigma_lr > 0.0:
-            groups.append({"params": [explorer.log_sigma_flow], "lr": sigma_lr})
-    return torch.optim.Adam(groups) if kind == "adam" else torch.optim.SGD(groups)
-
-
-def follow_sigma(explorer: ParamExploration, optimizer: torch.optim.Optimizer, lr: float,
-                 lr_flow: float = 0.0) -> None:
-    """Set the mean's step of each group to ``lr`` (the flow's: ``lr_flow`` if > 0) times the group's
-    current std (``param_step=current``; its square with ``sgd``, ``make_param_optimizer``).
-
-    With a step fixed at the initial std, a decayed exploration makes every update move the mean by
-    several of its current stds (approx_kl 1.5-8 per update late in a gear run, from 0.1-0.8 early):
-    the mean jumps outside the region its rollouts sampled, on the evidence of 7 pairs."""
-    with torch.no_grad():
-        std = {"gains": explorer.log_sigma_gains, "flow": explorer.log_sigma_flow}
-        for group in optimizer.param_groups:
-            which = group.get("std_of")
-            if which is not None and std[which].numel():
-                step = lr_flow if which == "flow" and lr_flow > 0.0 else lr
-                group["lr"] = step * float(torch.exp(std[which]).mean()) ** group.get("std_power", 1)
-
-
-def param_ppo_update(
-    explorer: ParamExploration,
-    optimizer: torch.optim.Optimizer,
-    theta: np.ndarray,
-    advantages: np.ndarray,
-    epochs: int,
-    clip_coef: float,
-    target_kl: float = 0.0,
-    per_group: bool = False,
-) -> dict[str, float]:
-    """``epochs`` full-batch steps of PPO's clipped surrogate over rollouts (one action per rollout:
-    its parameter vector); stops early like ``ppo_update`` when approx_kl exceeds 1.5 x target_kl.
-
-    ``per_group``: one clipped surrogate per explored group (gains, flow), summed, each with its own
-    ratio. With one joint ratio, a move of the flow's many coordinates pushes every rollout's ratio
-    out of the clip range, which then also stops the gains' gradient."""
-    th = torch.from_numpy(np.asarray(theta, dtype=np.float64))
-    adv = torch.from_numpy(np.asarray(advantages, dtype=np.float64))
-
-    def densities() -> list[torch.Tensor]:
-        return explorer.group_log_probs(th) if per_group else [explorer.log_prob(th)]
-
-    with torch.no_grad():
-        old = densities()
-    limit = 1.5 * target_kl if target_kl > 0.0 else math.inf
-    losses, clips, run = [], [], 0
-    for _ in range(epochs):
-        new = densities()
-        with torch.no_grad():
-            if sum(float(approx_kl(n, o)) for n, o in zip(new, old, strict=True)) > limit:
-                break
-        parts = [clipped_surrogate_loss(n, o, adv, clip_coef) for n, o in zip(new, old, strict=True)]
-        loss = sum(p[0] for p in parts)
-        clip_frac = max(float(p[1]) for p in parts)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        run += 1
-        losses.append(float(loss.detach()))
-        clips.append(float(clip_frac))
-    explorer.sync_policy()
-    with torch.no_grad():
-        kl = sum(float(approx_kl(n, o)) for n, o in zip(densities(), old, strict=True))
-    return {
-        "pg_loss": float(np.mean(losses)) if losses else math.nan,
-        "v_loss": math.nan,
-        "clip_frac": float(np.mean(clips)) if clips else math.nan,
-        "approx_kl": kl,
-        "epochs": float(run),
-    }

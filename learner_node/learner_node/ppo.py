@@ -76,21 +76,11 @@ def compute_gae(
     return adv, adv + values
 
 
-def normalize_advantages(adv: np.ndarray, mode: str = "standardize", eps: float = 1e-8) -> np.ndarray:
-    """Normalise advantages once over the whole batch (not per minibatch).
-
-    ``standardize``: (A - mean) / (std + eps), what the authors' rllab-style code calls centred
-    advantages; ``center``: A - mean only; ``none``: unchanged.
-    """
+def normalize_advantages(adv: np.ndarray, eps: float = 1e-8) -> np.ndarray:
+    """Standardise advantages once over the whole batch (not per minibatch): (A - mean) / (std + eps),
+    what the authors' rllab-style code calls centred advantages."""
     adv = np.asarray(adv, dtype=np.float64)
-    if mode == "none":
-        return adv.copy()
-    centred = adv - adv.mean()
-    if mode == "center":
-        return centred
-    if mode == "standardize":
-        return centred / (adv.std() + eps)
-    raise ValueError(f"unknown advantage normalisation {mode!r}")
+    return (adv - adv.mean()) / (adv.std() + eps)
 
 
 # =====================================================================================================
@@ -178,46 +168,6 @@ class LinearFeatureBaseline:
         self.coeffs = None if c is None else c.numpy().astype(np.float64).copy()
 
 
-class ValueNetwork(nn.Module):
-    """Optional value network: MLP (tanh, two hidden layers) on [observation, time / episode length].
-
-    Its output is multiplied by ``scale``, set once from the standard deviation of the first batch's
-    returns (``set_scale_once``), so the network regresses targets of order one.
-    """
-
-    def __init__(self, obs_dim: int, hidden: int = 64, seed: int = 0, dtype: torch.dtype = torch.float64) -> None:
-        super().__init__()
-        gen = torch.Generator().manual_seed(seed)
-        self.net = nn.Sequential(
-            nn.Linear(obs_dim + 1, hidden, dtype=dtype), nn.Tanh(),
-            nn.Linear(hidden, hidden, dtype=dtype), nn.Tanh(),
-            nn.Linear(hidden, 1, dtype=dtype),
-        )
-        with torch.no_grad():
-            for p in self.net.parameters():
-                if p.dim() == 2:  # weights: torch.nn.Linear's bound 1/sqrt(fan_in), from our generator
-                    p.uniform_(-1.0 / np.sqrt(p.shape[1]), 1.0 / np.sqrt(p.shape[1]), generator=gen)
-                else:
-                    p.zero_()
-        self.register_buffer("scale", torch.zeros((), dtype=dtype))
-        self.dtype = dtype
-
-    def set_scale_once(self, returns: np.ndarray) -> None:
-        """Fix the output scale from the first batch of returns (later calls do nothing)."""
-        if float(self.scale) == 0.0:
-            self.scale.fill_(max(float(np.std(returns)), 1.0))
-
-    def forward(self, obs_t: torch.Tensor) -> torch.Tensor:
-        """Values (N,) for inputs (N, obs_dim + 1): observation and normalised time."""
-        scale = self.scale if float(self.scale) > 0.0 else torch.ones((), dtype=self.dtype)
-        return self.net(obs_t).squeeze(-1) * scale
-
-
-# =====================================================================================================
-# The update
-# =====================================================================================================
-
-
 class GaussianPolicy(Protocol):
     """What the update needs from a policy (``NFPolicy`` and ``MLPPolicy`` both have it)."""
 
@@ -235,8 +185,7 @@ class PPOBatch:
     action: torch.Tensor  # (N, d) mean force + held noise, N
     old_log_prob: torch.Tensor  # (N,) log-density of the action under the behaviour policy
     advantages: torch.Tensor  # (N,) normalised advantages
-    returns: torch.Tensor  # (N,) value targets (value baseline only)
-    value_input: torch.Tensor | None = None  # (N, obs_dim + 1) value network input
+    returns: torch.Tensor  # (N,) GAE returns (advantages + baseline)
 
     def __len__(self) -> int:
         return self.x.shape[0]
@@ -249,8 +198,6 @@ class PPOSettings:
     update_epochs: int = 10
     minibatch_size: int = 64
     clip_coef: float = 0.2
-    vf_coef: float = 0.5
-    max_grad_norm: float = 0.0  # 0: off
     target_kl: float = 0.0  # 0: off
 
 
@@ -270,9 +217,8 @@ def ppo_update(
     batch: PPOBatch,
     settings: PPOSettings,
     rng: np.random.Generator,
-    value_net: ValueNetwork | None = None,
 ) -> dict[str, float]:
-    """Minibatch epochs of the clipped PPO loss (plus the value loss with a value network).
+    """Minibatch epochs of the clipped PPO loss (the baseline is fitted outside: no value loss).
 
     Each epoch visits a fresh permutation from ``rng`` in minibatches of ``minibatch_size`` (the last
     one may be smaller). Reports the mean policy loss, value loss and clip fraction over all
@@ -281,8 +227,7 @@ def ppo_update(
     minibatch already shows an approx_kl above 1.5 x target_kl (stable-baselines3's rule).
     """
     n = len(batch)
-    params = [p for group in optimizer.param_groups for p in group["params"]]
-    pg_losses, v_losses, clip_fracs = [], [], []
+    pg_losses, clip_fracs = [], []
     epochs_run = 0
     kl_limit = 1.5 * settings.target_kl if settings.target_kl > 0.0 else math.inf
     stop = False
@@ -299,15 +244,8 @@ def ppo_update(
             pg_loss, clip_frac = clipped_surrogate_loss(
                 new_lp, batch.old_log_prob[idx], batch.advantages[idx], settings.clip_coef
             )
-            loss = pg_loss
-            if value_net is not None and batch.value_input is not None:
-                v_loss = 0.5 * ((value_net(batch.value_input[idx]) - batch.returns[idx]) ** 2).mean()
-                loss = loss + settings.vf_coef * v_loss / value_net.scale.clamp(min=1.0) ** 2
-                v_losses.append(float(v_loss.detach()))
             optimizer.zero_grad()
-            loss.backward()
-            if settings.max_grad_norm > 0.0:
-                nn.utils.clip_grad_norm_(params, settings.max_grad_norm)
+            pg_loss.backward()
             optimizer.step()
             pg_losses.append(float(pg_loss.detach()))
             clip_fracs.append(float(clip_frac))
@@ -317,7 +255,7 @@ def ppo_update(
         kl = float(approx_kl(policy.log_prob(batch.x, batch.xdot, batch.action), batch.old_log_prob))
     return {
         "pg_loss": float(np.mean(pg_losses)) if pg_losses else math.nan,
-        "v_loss": float(np.mean(v_losses)) if v_losses else float("nan"),
+        "v_loss": math.nan,
         "clip_frac": float(np.mean(clip_fracs)) if clip_fracs else math.nan,
         "approx_kl": kl,
         "epochs": float(epochs_run),

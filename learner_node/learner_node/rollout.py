@@ -92,9 +92,8 @@ class RolloutRunner:
         self.cfg = cfg
         self.task = cfg.task
         self.dim = cfg.dim
-        self.weights = RewardWeights.from_config(cfg)
-        plane = cfg.block_plane if cfg.task == "block" else "vertical"
-        self.env = InsertionEnv(cfg.task, plane=plane)
+        self.weights = RewardWeights()
+        self.env = InsertionEnv(cfg.task)
         self.friction = cfg.friction_ranges()
         self.env.set_friction_ranges(self.friction)  # each reset(seed) draws the episode's joint friction
         self.goal = self.env.goal_position

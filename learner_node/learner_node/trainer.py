@@ -1,8 +1,8 @@
-"""In-process PPO training of the NF (or MLP) policy: rollouts, advantages, update, metrics, checkpoints.
+"""In-process training of the NF (or MLP) policy: the loop, metrics, evaluations and checkpoints.
 
-One iteration: ``rollouts_per_iter`` episodes with the current stochastic policy (compiled
-evaluator in the 1 kHz loop), GAE with the baseline, one PPO update (torch), a metrics row and a
-checkpoint. All randomness after the policy initialisation comes from one numpy Generator seeded
+One iteration: ``rollouts_per_iter`` episodes (compiled evaluator in the 1 kHz loop), one update by
+the run's exploration kind (``action_ppo.ActionNoisePPO`` or ``param_ppo.ParamSpacePPO``), a metrics
+row and a checkpoint. All randomness after the policy initialisation comes from one numpy Generator seeded
 once with ``cfg.seed`` (training start seeds, noise seeds, minibatch order); its state is in the
 checkpoint, so a restarted run continues exactly as an uninterrupted one.
 """
@@ -27,30 +27,13 @@ from nf_core.flow_spec import FlowArchitecture
 from nf_core.policy_params import PolicyParameters
 from nf_core.reward import REWARD_TERMS
 
-from .config import TrainConfig
+from .action_ppo import ActionNoisePPO
+from .config import FLOW_ACTIVATION, MLP_ACTIVATION, MLP_HIDDEN, TrainConfig
 from .flow import init_flow_weights, move_flow_to_goal, rescale_flow_weights
 from .mlp_policy import MLPEvaluator, MLPPolicy
-from .param_explore import (
-    ParamExploration,
-    follow_sigma,
-    make_param_optimizer,
-    pair_mean_advantages,
-    pair_rms,
-    paired_advantages,
-    param_ppo_update,
-)
+from .param_explore import ParamExploration
+from .param_ppo import ParamSpacePPO
 from .policy import NFPolicy
-from .ppo import (
-    LinearFeatureBaseline,
-    PPOBatch,
-    PPOSettings,
-    ValueNetwork,
-    compute_gae,
-    discounted_returns,
-    make_optimizer,
-    normalize_advantages,
-    ppo_update,
-)
 from .rollout import EpisodeRecord, RolloutRunner
 
 LOG = logging.getLogger("learner_node.trainer")
@@ -62,22 +45,18 @@ EVAL_SEED_BASE = 1_000_000_000  # held-out evaluation starts: seeds >= this; tra
 # (with friction_coulomb / friction_viscous set, they draw their joint friction from the same ranges)
 # settings that may differ between a checkpoint and the run that resumes it (init_checkpoint is
 # read only by a run's start: a resumed run continues from its own checkpoint whatever it says)
-RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes", "eval_every", "init_checkpoint",
-                               "init_sigma_scale", "init_target_kl"})
+RESUMABLE_CHANGES = frozenset({"iterations", "eval_episodes", "eval_every", "init_checkpoint", "init_target_kl"})
 PERIODIC_EVALUATIONS = "evaluations"  # run-folder subdirectory of the eval_every evaluations
 # metrics columns of a periodic evaluation <- the evaluation's own keys
 EVAL_COLUMNS = {"eval_return": "return_mean", "eval_success": "success_rate",
                 "eval_final_distance": "final_distance_mean"}
 # the settings that shape a policy's parameters, per policy type (with the task's dimension)
-ARCHITECTURE = {"nf": ("n_flow", "n_hidden", "activation"), "mlp": ("mlp_hidden", "mlp_activation")}
+ARCHITECTURE = {"nf": ("n_flow", "n_hidden"), "mlp": ()}
 # settings only the NF policy reads: an MLP run's checkpoint resumes whatever they are
-NF_ONLY = frozenset({"n_flow", "n_hidden", "activation", "flow_init", "stiffness", "damping", "stiffness_axial",
-                     "damping_axial", "gains", "exploration", "param_sigma_gains", "param_sigma_flow", "param_lr",
-                     "param_sigma_lr", "param_sigma_decay", "param_flow",
-                     "flow_input_scale", "param_step",
-                     "param_lr_flow", "param_ratio", "param_flow_dim", "param_adv_scale",
-                     "param_spread_signal", "param_optimizer", "param_sigma_settle", "param_settle_success",
-                     "param_settle_rule", "param_settle_from",
+NF_ONLY = frozenset({"n_flow", "n_hidden", "flow_init", "stiffness", "damping", "stiffness_axial", "gains",
+                     "exploration", "potential_force_bound", "stiffness_floor", "flow_input_scale",
+                     "param_sigma_gains", "param_sigma_flow", "param_flow_dim", "param_lr", "param_sigma_lr",
+                     "param_sigma_decay", "param_sigma_settle", "param_settle_rule", "param_settle_from",
                      "param_elite", "param_sigma_jump"})
 TIMING_KEYS = ("rollout_seconds", "update_seconds", "wall_seconds")
 
@@ -86,7 +65,7 @@ def build_policy(cfg: TrainConfig, x_ref: np.ndarray) -> NFPolicy | MLPPolicy:
     """The policy of ``cfg`` (initialised from ``cfg.seed``) with goal ``x_ref``."""
     d = cfg.dim
     if cfg.policy == "nf":
-        arch = FlowArchitecture(dim=d, n_flow=cfg.n_flow, n_hidden=cfg.n_hidden, activation=cfg.activation)
+        arch = FlowArchitecture(dim=d, n_flow=cfg.n_flow, n_hidden=cfg.n_hidden, activation=FLOW_ACTIVATION)
         weights = None
         if cfg.flow_input_scale > 0.0:  # initialised in normalised units: O(1) features over the scale
             normalised = init_flow_weights(arch, np.random.default_rng(cfg.seed), init=cfg.flow_init)
@@ -95,7 +74,7 @@ def build_policy(cfg: TrainConfig, x_ref: np.ndarray) -> NFPolicy | MLPPolicy:
                         x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed,
                         flow_init=cfg.flow_init, learn_gains=cfg.gains == "learned",
                         stiffness_floor=cfg.stiffness_floor)
-    return MLPPolicy(d, cfg.mlp_hidden, cfg.mlp_activation, x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed)
+    return MLPPolicy(d, MLP_HIDDEN, MLP_ACTIVATION, x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed)
 
 
 def read_checkpoint(path: str | Path, what: str = "checkpoint") -> dict[str, Any]:
@@ -192,34 +171,29 @@ class Trainer:
         self.runner = RolloutRunner(cfg)
         self.x_ref = self.runner.x_ref
         self.policy = build_policy(cfg, self.x_ref)
-        params = list(self.policy.parameters())
-        self.baseline = LinearFeatureBaseline()
-        self.value_net: ValueNetwork | None = None
-        self.explorer: ParamExploration | None = None
-        self._pending: np.ndarray | None = None  # params exploration: this iteration's parameter draws
         # init_checkpoint: the checkpoint this run's policy came from (path, its iteration, task, x_ref)
         self.started_from: dict[str, Any] | None = None
-        if cfg.policy == "nf" and cfg.exploration == "params":
-            self._explore_params()
-        else:
-            if cfg.baseline == "value":
-                self.value_net = ValueNetwork(2 * cfg.dim, cfg.value_hidden, seed=cfg.seed)
-                params += list(self.value_net.parameters())
-            self.optimizer = make_optimizer(params, cfg.learning_rate)
-        self.settings = PPOSettings(cfg.update_epochs, cfg.minibatch_size, cfg.clip_coef, cfg.vf_coef,
-                                    cfg.max_grad_norm, cfg.update_target_kl)
+        self.update_rule: ActionNoisePPO | ParamSpacePPO = self._make_update_rule()
         self.rng = np.random.default_rng(cfg.seed)
         self.iteration = 0  # completed iterations
         self.history: list[dict[str, float]] = []
         self._evaluated: tuple[int, dict[str, Any]] | None = None  # the last periodic evaluation
 
-    def _explore_params(self) -> None:
-        """The parameter exploration around the policy as it is now, and its optimiser."""
-        cfg = self.cfg
-        self.explorer = ParamExploration(self.policy, cfg.param_sigma_gains, cfg.param_sigma_flow,
-                                         cfg.flow_input_scale, cfg.param_flow, cfg.param_flow_dim, cfg.seed)
-        self.optimizer = make_param_optimizer(self.explorer, cfg.param_lr, cfg.param_sigma_lr, cfg.param_lr_flow,
-                                              cfg.param_optimizer)
+    def _make_update_rule(self) -> ActionNoisePPO | ParamSpacePPO:
+        """The exploration kind's update, around the policy as it is now."""
+        if self.cfg.policy == "nf" and self.cfg.exploration == "params":
+            return ParamSpacePPO(self.cfg, self.policy)
+        return ActionNoisePPO(self.cfg, self.policy, self.x_ref)
+
+    @property
+    def explorer(self) -> ParamExploration | None:
+        """The parameter exploration's distribution (None with action noise)."""
+        return self.update_rule.explorer if isinstance(self.update_rule, ParamSpacePPO) else None
+
+    @property
+    def optimizer(self) -> torch.optim.Optimizer:
+        """The update's optimiser."""
+        return self.update_rule.optimizer
 
     # ------------------------------------------------------------------ one iteration
     def episode_seeds(self) -> list[tuple[int, int]]:
@@ -239,14 +213,7 @@ class Trainer:
         first's start seed), each run as a deterministic controller (no noise); the draws are kept for
         ``update``. Over ROS: publish each rollout's parameters before its episode and run it noise-free.
         """
-        seeds = self.episode_seeds()
-        if self.explorer is None:
-            return [(start, noise, None) for start, noise in seeds]
-        theta, _ = self.explorer.sample(len(seeds), self.rng)
-        self._pending = theta
-        for i in range(1, 2 * (len(seeds) // 2), 2):
-            seeds[i] = (seeds[i - 1][0], seeds[i][1])
-        return [(start, noise, self.explorer.params_for(th)) for (start, noise), th in zip(seeds, theta, strict=True)]
+        return self.update_rule.plan(self.episode_seeds(), self.rng)
 
     def collect(self) -> list[EpisodeRecord]:
         """``rollouts_per_iter`` episodes of the current stochastic policy (or parameter draws)."""
@@ -257,35 +224,6 @@ class Trainer:
         sigma = policy_sigma(self.policy)
         return [self.runner.run_episode(evaluator, sigma, start, np.random.default_rng(noise))
                 for start, noise, _ in plan]
-
-    def make_batch(self, episodes: list[EpisodeRecord]) -> PPOBatch:
-        """Advantages from GAE with the baseline (predicted, then refitted on this batch), as tensors."""
-        cfg = self.cfg
-        cat = np.concatenate
-        x, xdot = cat([e.x for e in episodes]), cat([e.xdot for e in episodes])
-        t = cat([e.t for e in episodes])
-        rewards = cat([e.reward for e in episodes])
-        dones = cat([np.arange(len(e.reward)) == len(e.reward) - 1 for e in episodes])
-        obs = np.concatenate([x - self.x_ref, xdot], axis=1)
-        mc_returns = discounted_returns(rewards, dones, cfg.gamma)
-        value_input = None
-        if self.value_net is None:
-            values = self.baseline.predict(obs, t)
-            adv, returns = compute_gae(rewards, values, dones, cfg.gamma, cfg.gae_lambda)
-            self.baseline.fit(obs, t, mc_returns)  # rllab order: this batch's fit serves the next one
-        else:
-            value_input = torch.from_numpy(np.concatenate([obs, (t / cfg.episode_seconds)[:, None]], axis=1))
-            self.value_net.set_scale_once(mc_returns)
-            with torch.no_grad():
-                values = self.value_net(value_input).numpy()
-            adv, returns = compute_gae(rewards, values, dones, cfg.gamma, cfg.gae_lambda)
-        adv = normalize_advantages(adv, cfg.adv_norm)
-        as_t = torch.from_numpy
-        return PPOBatch(
-            x=as_t(x), xdot=as_t(xdot), action=as_t(cat([e.action for e in episodes])),
-            old_log_prob=as_t(cat([e.log_prob for e in episodes])), advantages=as_t(adv),
-            returns=as_t(returns), value_input=value_input,
-        )
 
     def train_iteration(self) -> dict[str, float]:
         """Collect, update, record one metrics row (returned and appended to ``history``)."""
@@ -300,39 +238,8 @@ class Trainer:
         Parameter exploration: ``episodes`` are those of ``episode_plan()``, in its order, with None for
         one that failed (its pair then does not count)."""
         t1 = time.perf_counter()
-        if self.explorer is not None:
-            if self._pending is None or len(self._pending) != len(episodes):
-                raise ValueError("params exploration: update() needs the episodes of episode_plan(), in order")
-            if self.cfg.param_step == "current":
-                follow_sigma(self.explorer, self.optimizer, self.cfg.param_lr, self.cfg.param_lr_flow)
-            episodes_in = list(episodes)
-            returns = np.array([np.nan if e is None else e.episode_return for e in episodes])
-            adv = paired_advantages(returns, normalize=False)
-            scale = self.explorer.running_scale(adv) if self.cfg.param_adv_scale == "running" else pair_rms(adv)
-            if self.cfg.param_spread_signal == "pair_mean":
-                adv = adv + pair_mean_advantages(returns)
-            if scale > 0.0:
-                adv = adv / scale
-            episodes = [e for e in episodes if e is not None]
-            if not episodes:
-                raise ValueError("params exploration: every episode failed")
-            stats = param_ppo_update(self.explorer, self.optimizer, self._pending, adv, self.cfg.update_epochs,
-                                     self.cfg.clip_coef, self.cfg.update_target_kl, self.cfg.param_ratio == "group")
-            if self.cfg.param_elite != "none":
-                stats["param_elite"] = float(self.elite_step(episodes_in))
-            self.explorer.decay(self.cfg.param_sigma_decay)
-            settle = self.settle_factor(episodes_in)
-            self.explorer.decay(settle)
-            if self.cfg.param_sigma_settle < 1.0:
-                stats["param_settled"] = float(settle < 1.0)
-            self._pending = None
-            decisions = sum(len(e.reward) for e in episodes)
-        else:
-            batch = self.make_batch(episodes)
-            stats = ppo_update(self.policy, self.optimizer, batch, self.settings, self.rng, self.value_net)
-            decisions = len(batch)
-            if isinstance(self.policy, NFPolicy):
-                self.policy.sync_gains()
+        stats, decisions = self.update_rule.update(list(episodes), self.rng)
+        episodes = [e for e in episodes if e is not None]
         t2 = time.perf_counter()
         self.iteration += 1
         row: dict[str, float] = {"iteration": float(self.iteration)}
@@ -348,60 +255,6 @@ class Trainer:
             row.update(dict.fromkeys(EVAL_COLUMNS, math.nan))
         self.history.append(row)
         return row
-
-    def elite_step(self, episodes: list[EpisodeRecord | None]) -> int:
-        """``param_elite`` succeeded: if this iteration's rollout of the mean (the odd last one) failed while some draws
-        succeeded, move the mean to the average of the succeeded draws; ``returns`` also, when none succeeded, to the
-        average of the best quarter of the draws by return if each beat the mean's own return; ``minority``: whenever
-        some rollouts (the mean's included) succeeded but fewer than half, to the average of those;
-        ``minority_returns`` also, when none succeeded, as ``returns``. A move onto succeeded rollouts also multiplies
-        the stds by ``param_sigma_jump``. The number of rollouts averaged (0: no move)."""
-        if len(episodes) % 2 == 0 or episodes[-1] is None:
-            return 0
-        mode = self.cfg.param_elite
-        if mode.startswith("minority"):
-            won = [i for i, e in enumerate(episodes) if e is not None and e.final_success]
-            if 2 * len(won) >= sum(e is not None for e in episodes):
-                return 0
-        else:
-            if episodes[-1].final_success:
-                return 0
-            won = [i for i, e in enumerate(episodes[:-1]) if e is not None and e.final_success]
-        by_return = not won and mode in ("returns", "minority_returns")
-        if by_return:
-            won = self._better_by_return(episodes)
-        if not won:
-            return 0
-        self.explorer.set_mean(np.mean(self._pending[won], axis=0))
-        self.explorer.sync_policy()
-        if not by_return:
-            self.explorer.decay(self.cfg.param_sigma_jump)
-        return len(won)
-
-    @staticmethod
-    def _better_by_return(episodes: list[EpisodeRecord | None]) -> list[int]:
-        """The best quarter of the draws by return if each of them beat the mean's own rollout (the last), else none."""
-        draws = sorted(((e.episode_return, i) for i, e in enumerate(episodes[:-1]) if e is not None), reverse=True)
-        top = draws[:max(1, len(draws) // 4)]
-        return [i for _, i in top] if top and top[-1][0] > episodes[-1].episode_return else []
-
-    def settle_factor(self, episodes: list[EpisodeRecord | None]) -> float:
-        """``param_sigma_settle`` if this iteration's rollout of the mean (the odd last one) succeeded while
-        fewer than ``param_settle_success`` of the draws (the pairs) did, else 1. With ``param_settle_rule``
-        batch: if the success rate of all rollouts that ran is in [``param_settle_from``, ``param_settle_success``)."""
-        factor = self.cfg.param_sigma_settle
-        if factor >= 1.0:
-            return 1.0
-        if self.cfg.param_settle_rule == "batch":
-            ran = [e.final_success for e in episodes if e is not None]
-            rate = float(np.mean(ran)) if ran else 0.0
-            return factor if self.cfg.param_settle_from <= rate < self.cfg.param_settle_success else 1.0
-        if len(episodes) % 2 == 0 or episodes[-1] is None:
-            return 1.0
-        draws = [e.final_success for e in episodes[:-1] if e is not None]
-        if episodes[-1].final_success and draws and float(np.mean(draws)) < self.cfg.param_settle_success:
-            return factor
-        return 1.0
 
     def evaluation_due(self) -> bool:
         """Whether the iteration just completed is one of ``eval_every``'s (and evaluations are on)."""
@@ -473,10 +326,7 @@ class Trainer:
             "config": self.cfg.to_dict(),
             "iteration": self.iteration,
             "policy": self.policy.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "baseline": self.baseline.state_dict(),
-            "value_net": None if self.value_net is None else self.value_net.state_dict(),
-            "explorer": None if self.explorer is None else self.explorer.state_dict(),
+            **self.update_rule.state_dict(),  # optimizer, and baseline (action noise) or explorer (params)
             "rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
             "history": self.history,
@@ -496,12 +346,7 @@ class Trainer:
             detail = ", ".join(f"{k}: checkpoint {theirs[k]!r} vs now {mine[k]!r}" for k in diff)
             raise ValueError(f"checkpoint was written with different settings ({detail})")
         self.policy.load_state_dict(state["policy"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.baseline.load_state_dict(state["baseline"])
-        if self.value_net is not None:
-            self.value_net.load_state_dict(state["value_net"])
-        if self.explorer is not None:
-            self.explorer.load_state_dict(state["explorer"])
+        self.update_rule.load_state_dict(state)
         self.rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
         self.iteration = int(state["iteration"])
@@ -542,8 +387,7 @@ class Trainer:
             raise ValueError(f"init_checkpoint {path}: its policy does not match its own settings ({exc})") from None
         self._load_policy(source, path, theirs.flow_input_scale)
         if self.explorer is None:
-            with torch.no_grad():
-                self.policy.log_std.add_(math.log(self.cfg.init_sigma_scale))
+            self.update_rule = self._make_update_rule()  # an optimiser for the loaded weights
             spread = [f"action noise std {float(torch.exp(self.policy.log_std.detach()).mean()):.3g} N"]
         else:
             spread = self._continue_spread(state.get("explorer") or {})
@@ -604,7 +448,7 @@ class Trainer:
     def _continue_spread(self, stored: dict[str, Any]) -> list[str]:
         """Parameter exploration around the loaded policy, with the checkpoint's stds where it has them
         (``stored``: its explorer's state), and a new optimiser; returns the stds, for the log."""
-        self._explore_params()  # centred on the loaded flow and gains, in this run's coordinates
+        self.update_rule = self._make_update_rule()  # centred on the loaded flow and gains, in this run's units
         assert self.explorer is not None
         out = []
         with torch.no_grad():
@@ -615,13 +459,10 @@ class Trainer:
                 theirs = stored.get(name)
                 kept = theirs is not None and tuple(theirs.shape) == tuple(mine.shape)
                 if kept:
-                    mine.copy_(theirs + math.log(self.cfg.init_sigma_scale))
-                whose = ("the checkpoint's" + (f" x {self.cfg.init_sigma_scale:g}" if self.cfg.init_sigma_scale != 1.0
-                                               else "")) if kept else "this config's: the checkpoint has none"
+                    mine.copy_(theirs)
+                whose = "the checkpoint's" if kept else "this config's: the checkpoint has none"
                 out.append(f"{label} std {float(torch.exp(mine).mean()):.3g} ({whose})")
-        cfg = self.cfg  # the optimiser's steps follow the stds (make_param_optimizer)
-        self.optimizer = make_param_optimizer(self.explorer, cfg.param_lr, cfg.param_sigma_lr, cfg.param_lr_flow,
-                                              cfg.param_optimizer)
+        self.update_rule.restart_optimizer()  # its steps follow the stds
         return out
 
     def resume_or_init(self, fresh: bool = False) -> str | None:

@@ -50,7 +50,7 @@ ROBOT_RECORDER_READY = recorder_ready(("",), ROBOT_RECORDED_BEFORE_LEARNING)
 
 FRANKY = "franky"
 FRANKY_GOAL = (0.5, 0.0, 0.05)  # the gear cell's goal on franky-sim: 2 cm below the shaft's mouth (0.07 m)
-DEFAULT_ITERATIONS = 15  # about 100 s each on franky-sim (15 x 5 s episodes and the reset motions); window 9-12
+DEFAULT_ITERATIONS = 15  # PPO iterations of 15 x 5 s episodes and their reset motions (docs/hardware.md)
 # N/m, for a policy learned elsewhere (--from-checkpoint): a simulation without joint friction can
 # learn a spring too soft for the arm. On franky-sim's FR3 a simulation policy with a 142 N/m axial
 # spring stalled on the shaft top in all 10 starts; lifted to 250 N/m it inserted 10/10

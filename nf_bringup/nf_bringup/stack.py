@@ -4,7 +4,8 @@
 Starts the arm and its controller (by default composed in one process, ``nf_sim_stack`` in
 lockstep; ``--separate``: ``sim_bridge`` and ``nf_controller`` as two processes talking over
 topics), the bag recorder (when ``nf_bags`` is available) and, once the recorder subscribes to
-the arm and rollout topics, ``learner_node``, all with one parameters file; prefixes and
+the arm and rollout topics, ``learner_node``, all with the same parameters files (``config/sim.yaml``,
+then the task file, then any overlays: later files win); prefixes and
 forwards their output, stops them cleanly (SIGINT, then SIGTERM, then SIGKILL, each by PID) and
 leaves a run folder::
 
@@ -38,7 +39,7 @@ from .processes import ManagedProcess, allocate_domain_id, ros_env, stop_on_sign
 from .run_summary import final_video, plot_curves, write_summary
 
 CHECKPOINT = "checkpoint.pt"  # the learner's (learner_node.trainer.CHECKPOINT), in <run>/learner/
-DEFAULT_ITERATIONS = 30  # 6-10 s each over ROS here with the recorder (composed): 4.5 min in all (README)
+SIM_STACK_PARAMS = "sim.yaml"  # the simulated stack's own settings, beside the task files (config/)
 # The learner starts only once the recorder subscribes to these (its "recording <topic> (" line):
 # the controller's first episode follows the learner's first policy at once, and a recorder still
 # discovering topics would miss it (a 0.5 s episode's single rollout chunk was lost that way in CI).
@@ -48,11 +49,6 @@ RECORDER_READY = tuple(f"recording {t} (" for t in RECORDED_BEFORE_LEARNING)  # 
 # without it cannot be re-simulated); checked after the learner starts, without holding it up.
 POLICY_READY = "recording /policy_parameters ("
 POLICY_WAIT_SECONDS = 60.0
-# ``-p nf_controller:x:=v`` matches only a node without a namespace, and a plain ``-p`` loses to the
-# config's ``/**/nf_controller`` section: namespaced arms get the lockstep settings in a second file
-# with that section (written into the run folder, after the config so it wins).
-ARM_PARAMS_FILE = "arm_params.yaml"
-LOCKSTEP_PARAMS = "/**/nf_controller:\n  ros__parameters:\n    idle_mode: pause\n    max_consecutive_misses: 0\n"
 
 
 def arm_namespaces(arms: int) -> list[str]:
@@ -71,21 +67,20 @@ def policy_ready(namespaces: Sequence[str]) -> tuple[str, ...]:
 RECORDER_WAIT_SECONDS = 120.0  # the controller's first start compiles its kernels (~15 s here)
 
 
-def node_commands(config: Path, run_dir: Path, iterations: int, extra: Sequence[str] = (),
+def stack_configs(configs: Sequence[Path]) -> list[Path]:
+    """The parameters files every process gets, in order: the simulated stack's (``config/sim.yaml``,
+    beside the task file), then ``configs`` (the task file and its overlays)."""
+    return [configs[0].resolve().parent / SIM_STACK_PARAMS, *configs]
+
+
+def node_commands(configs: Sequence[Path], run_dir: Path, iterations: int | None = None, extra: Sequence[str] = (),
                   composed: bool = True, arms: int = 0) -> dict[str, list[str]]:
     """The argv of every process of the stack, keyed by the name used in the log prefix; ``arms`` > 0:
-    that many arms under ``/arm0`` .. (their lockstep settings in ``run_dir/ARM_PARAMS_FILE``, which
-    this writes)."""
+    that many arms under ``/arm0`` ..; ``iterations`` None: the files' own."""
     py = sys.executable
-    params = ["--ros-args", "--params-file", str(config)]
-    # lockstep: the sim waits for each command, so a slow step is no danger and must not latch the
-    # safe hold (a busy machine would stop the run); between episodes the sim waits (pause)
-    lockstep_controller = ["-p", "nf_controller:idle_mode:=pause", "-p", "nf_controller:max_consecutive_misses:=0"]
+    params = ["--ros-args"] + [arg for path in stack_configs(configs) for arg in ("--params-file", str(path))]
+    lockstep_controller: list[str] = []  # idle_mode pause, no miss latch: config/sim.yaml's /**/nf_controller
     cmds: dict[str, list[str]] = {}
-    if arms > 0:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / ARM_PARAMS_FILE).write_text(LOCKSTEP_PARAMS)
-        lockstep_controller = ["--params-file", str(run_dir / ARM_PARAMS_FILE)]
     for i, ns in enumerate(arm_namespaces(arms)):
         remap = ["-r", f"__ns:={ns}"] if ns else []
         name = f"arm{i}" if ns else "arm"
@@ -102,15 +97,22 @@ def node_commands(config: Path, run_dir: Path, iterations: int, extra: Sequence[
     # once it sees the learner's publisher), and the learner exits once both subscribers (the
     # controller and the recorder) acknowledged its last policy
     cmds |= {
-        # simulation: a latched fault is cleared at once (the next reset puts the arm somewhere new)
-        "learner": [py, "-m", "learner_node.node", *params, "-p", "learner_node:on_safe_hold:=auto",
+        "learner": [py, "-m", "learner_node.node", *params,
                     "-p", f"learner_node:out_dir:={run_dir / 'learner'}",
                     "-p", f"learner_node:policy_subscribers:={2 if record else 1}",
-                    "-p", f"learner_node:iterations:={iterations}", *listed, *extra],
+                    *(["-p", f"learner_node:iterations:={iterations}"] if iterations is not None else []),
+                    *listed, *extra],
     }
     if record:
         cmds["recorder"] = [py, "-m", "nf_bags.record", "-o", str(run_dir / "bag")]
     return cmds
+
+
+def read_iterations(configs: Sequence[Path]) -> int:
+    """The learner's ``iterations`` as the files give it (the last that sets it; else the default)."""
+    from learner_node.config import TrainConfig
+
+    return TrainConfig.from_sources(list(configs)).iterations
 
 
 def from_checkpoint_args(checkpoint: Path | None, run_dir: Path) -> list[str]:
@@ -141,8 +143,10 @@ def wait_for_recorder(recorder: ManagedProcess, others: Sequence[ManagedProcess]
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``run_stack``."""
     parser = argparse.ArgumentParser(prog="run_stack", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", type=Path, default=Path("config/gear_learn.yaml"), help="parameters file")
-    parser.add_argument("--iterations", type=int, default=DEFAULT_ITERATIONS, help="PPO iterations")
+    parser.add_argument("--config", type=Path, action="append", default=None, metavar="FILE",
+                        help="task file, then overlays (repeatable, later files win; default config/gear_learn.yaml); "
+                             "config/sim.yaml beside it comes first")
+    parser.add_argument("--iterations", type=int, default=None, help="PPO iterations (default: the task file's)")
     parser.add_argument("--out", type=Path, default=None, help="run folder (default runs/<date-time>)")
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: from the environment)")
     parser.add_argument("--no-video", action="store_true", help="skip the rendered video of the final policy")
@@ -161,10 +165,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="also serve the live view of the fleet (fleet_view: Foxglove WebSocket on "
                              "ws://127.0.0.1:8765)")
     args = parser.parse_args(argv)
-    if not args.config.exists():
-        parser.error(f"no such parameters file: {args.config}")
-    yaml.safe_load(args.config.read_text())  # a broken file fails here, before any process starts
-    if args.iterations < 1:
+    args.config = args.config or [Path("config/gear_learn.yaml")]
+    for path in stack_configs(args.config):
+        if not path.exists():
+            parser.error(f"no such parameters file: {path}")
+        yaml.safe_load(path.read_text())  # a broken file fails here, before any process starts
+    iterations = read_iterations(args.config) if args.iterations is None else args.iterations
+    if iterations < 1:
         parser.error("--iterations must be >= 1")
     if args.arms is not None and args.arms < 1:
         parser.error("--arms must be >= 1")
@@ -181,7 +188,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         domain_id = int(os.environ.get("ROS_DOMAIN_ID") or allocate_domain_id())
     env = ros_env(domain_id, sources=False)  # the nodes run from the environment's packages (the install tree)
     print(f"[stack] run folder {run_dir}, ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']} (loopback only); "
-          f"{args.iterations} iterations; Ctrl-C stops cleanly and keeps the checkpoint", flush=True)
+          f"{iterations} iterations; Ctrl-C stops cleanly and keeps the checkpoint", flush=True)
     cmds = node_commands(args.config, run_dir, args.iterations, [*from_checkpoint, *args.learner_arg],
                          composed=not args.separate, arms=args.arms)
     namespaces = arm_namespaces(args.arms)
@@ -230,14 +237,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                 procs[name].stop()
     wall = time.monotonic() - t0
     if plot_curves(run_dir / "learner" / "metrics.json", run_dir / "learning_curves.png",
-                   f"NF-PPO over ROS 2: {args.config.stem}"):
+                   f"NF-PPO over ROS 2: {' + '.join(c.stem for c in args.config)}"):
         print(f"[stack] learning curves: {run_dir / 'learning_curves.png'}", flush=True)
     if not args.no_video and not interrupted:
         try:
             final_video(run_dir)
         except Exception as exc:  # a missing GL backend must not hide the run's results
             print(f"[stack] no video: {exc}", flush=True)
-    summary = write_summary(run_dir, args.config, wall, code, composed=not args.separate, arms=args.arms)
+    summary = write_summary(run_dir, args.config[0], wall, code, composed=not args.separate, arms=args.arms)
     print(f"[stack] done in {wall / 60:.1f} min; summary: {summary}", flush=True)
     return 130 if interrupted else (code or 0)
 

@@ -45,7 +45,7 @@ from nf_core import qos
 from nf_core.episode import Chunk, EpisodeRun, EpisodeSpec, check_goal_duration
 from nf_core.panda_spec import HELD_PART_NAMES, held_part_by_name
 from nf_core.policy_params import PolicyParameterError, PolicyParameters
-from nf_core.reward import RewardWeights, reward_parameter_defaults
+from nf_core.reward import DEFAULT_WEIGHTS
 from nf_core.ros_runtime import declare_read_only, run_node
 from nf_core.topics import (
     COMMANDS,
@@ -95,7 +95,6 @@ PARAMETERS = {
     "chunk_decisions": (100, "decisions per streamed rollout chunk"),
     "policy_wait": (10.0, "s an episode waits for the policy version it asks for"),
     "reset_timeout": (60.0, "composed: s the driver may take to reset the world (a robot moves there)"),
-    **reward_parameter_defaults(),
     "diagnostics_period": (1.0, "s between /diagnostics messages"),
 }
 _MODE_NAMES = {MODE_IDLE: "idle", MODE_RUNNING: "running", MODE_SAFE_HOLD: "safe_hold", MODE_RESETTING: "resetting"}
@@ -139,7 +138,6 @@ def _loop_from(p: dict, arm: ArmModel | None = None, joint_names: Sequence[str] 
                         state_timeout=p["state_timeout"], idle_mode=p["idle_mode"])
     if not p["chunk_decisions"] >= 1:
         raise ValueError(f"chunk_decisions must be >= 1, got {p['chunk_decisions']}")
-    RewardWeights.from_params(p).check()
     if arm is None:
         arm = ArmModel(part=part)
     if joint_names is None:
@@ -202,7 +200,7 @@ class NFControllerNode(Node):
                 self._reset_client = self.create_client(ResetSim, p["reset_service"])
             if p["state_timeout"] > 0.0:
                 self.create_timer(max(p["state_timeout"] / 4.0, 0.001), self._on_watchdog)
-        self._weights = RewardWeights.from_params(p)
+        self._weights = DEFAULT_WEIGHTS
         self._episode_ids = itertools.count(int(time.time() * 1000) * 1000)  # unique across restarts
         self._episode_run: EpisodeRun | None = None
         self._goal = None

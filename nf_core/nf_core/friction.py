@@ -1,4 +1,4 @@
-"""Joint friction randomized per episode (issue 30): the ranges, their checks and the draw.
+"""Joint friction randomized per episode: the ranges, their checks and the draw.
 
 A task file's shared settings (``/**``) ``friction_coulomb: [lo, hi]`` (Nm; N for the block's slide
 joints) and ``friction_viscous: [lo, hi]`` (Nm s/rad, added to the arm's own damping) give, for every
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-FRICTION_STREAM = 30  # second word of the draw's seed: the friction's own random stream (issue 30)
+FRICTION_STREAM = 30  # second word of the draw's seed: the friction's own random stream
 OFF = (0.0, 0.0)
 RANGE_NAMES = ("friction_coulomb", "friction_viscous")
 

@@ -35,11 +35,9 @@ class PolicyLimits:
     max_stiffness: float = 1.0e4  # N/m (latent units), largest eigenvalue of S
     max_damping: float = 1.0e3  # N s/m (latent units), largest eigenvalue of D
     max_abs_weight: float = 1.0e3  # any flow weight, dimensionless (default init bound: 1/sqrt(n_hidden))
-    # Flow weights: the compiled step's time grows ~linearly with them. Measured (tests/test_hostile_cost.py
-    # --sizes, 3000 steps each, thread CPU time, 2-core machine at load average 7): 2,700 weights
-    # (n_flow 2, n_h 16) median 29 / p99 165 us; 18,968 (4, 32) 64 / 253 us; 70,680 (4, 64)
-    # 118 / 355 us; 544,816 (8, 128) 795 / 1325 us. 20,000 keeps p99 near a quarter of the 1 ms period
-    # on a loaded machine, with room for the node's own work, and admits n_flow 4 x n_hidden 32.
+    # Flow weights: the compiled step's time grows about linearly with them; 20,000 keeps the step well
+    # inside the 1 ms period with room for the node's own work and admits n_flow 4 x n_hidden 32
+    # (timings per size: docs/measurements.md, from tests/test_hostile_cost.py --sizes).
     max_flow_params: int = 20_000
     max_reach: float = MAX_REACH  # m, |x_ref| from the arm's base frame origin
 
