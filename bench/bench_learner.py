@@ -45,7 +45,7 @@ for pkg in ("nf_core", "nf_controller_node", "learner_node", "sim_bridge_node"):
     if str(ROOT / pkg) not in sys.path:
         sys.path.insert(0, str(ROOT / pkg))
 
-from learner_node.config import TrainConfig  # noqa: E402
+from learner_node.config import MLP_ACTIVATION, MLP_HIDDEN, TrainConfig  # noqa: E402
 from learner_node.mlp_policy import MLPPolicy  # noqa: E402
 from learner_node.policy import NFPolicy  # noqa: E402
 from learner_node.ppo import PPOBatch, PPOSettings, make_optimizer, ppo_update  # noqa: E402
@@ -157,12 +157,11 @@ def sb3_iteration(rollouts: int) -> tuple[Callable[[], dict[str, float]], dict[s
     settings = {
         "n_steps": n_steps, "batch_size": cfg.minibatch_size, "n_epochs": cfg.update_epochs,
         "learning_rate": cfg.learning_rate, "gamma": cfg.gamma, "gae_lambda": cfg.gae_lambda,
-        "clip_range": cfg.clip_coef, "normalize_advantage": cfg.adv_norm != "none", "ent_coef": 0.0,
-        "vf_coef": cfg.vf_coef, "max_grad_norm": cfg.max_grad_norm if cfg.max_grad_norm > 0 else math.inf,
-        "target_kl": cfg.target_kl if cfg.target_kl > 0 else None,
+        "clip_range": cfg.clip_coef, "normalize_advantage": True, "ent_coef": 0.0,
+        "vf_coef": 0.5, "max_grad_norm": math.inf, "target_kl": None,
     }
-    act = {"tanh": torch.nn.Tanh, "gelu": torch.nn.GELU}[cfg.mlp_activation]
-    policy_kwargs = {"net_arch": {"pi": [cfg.mlp_hidden] * 2, "vf": [cfg.value_hidden] * 2}, "activation_fn": act,
+    act = {"tanh": torch.nn.Tanh, "gelu": torch.nn.GELU}[MLP_ACTIVATION]
+    policy_kwargs = {"net_arch": {"pi": [MLP_HIDDEN] * 2, "vf": [MLP_HIDDEN] * 2}, "activation_fn": act,
                      "log_std_init": math.log(cfg.sigma_init)}
     with warnings.catch_warnings():  # n_steps not a multiple of the minibatch: a short last one, as ours
         warnings.filterwarnings("ignore", message=".*mini-batch size.*")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -69,10 +70,11 @@ def test_stack_runs_an_iteration_and_leaves_a_complete_run_folder(tmp_path):
     domain = allocate_domain_id()
     learner_args = ["-p", "learner_node:rollouts_per_iter:=2", "-p", "learner_node:eval_episodes:=1",
                     "-p", "learner_node:eval_every:=1", "-p", "episode_seconds:=0.5"]
-    cmd = [sys.executable, "-m", "nf_bringup.stack", "--config", str(REPO / "config" / "gear.yaml"),
+    # make run's own command and task file (config/sim.yaml, then config/gear_learn.yaml), shortened
+    cmd = [sys.executable, "-m", "nf_bringup.stack",
            "--iterations", "2", "--out", str(run), "--domain-id", str(domain),
            *[f"--learner-arg={a}" for a in learner_args]]
-    done = subprocess.run(cmd, env=ros_env(domain), capture_output=True, text=True, timeout=400, cwd=tmp_path)
+    done = subprocess.run(cmd, env=ros_env(domain), capture_output=True, text=True, timeout=400, cwd=REPO)
     out = done.stdout + done.stderr
     assert done.returncode == 0, out[-3000:]
     # logs are forwarded with a prefix per process, and kept per process
@@ -90,6 +92,10 @@ def test_stack_runs_an_iteration_and_leaves_a_complete_run_folder(tmp_path):
     prior = json.loads((run / "learner" / "evaluation_prior.json").read_text())
     final = json.loads((run / "learner" / "evaluation.json").read_text())
     assert (prior["iteration"], final["iteration"]) == (0, 2) and prior["episodes"] == final["episodes"] == 1
+    # the GIF is the evaluation's first held-out start, with the policy's law: it ends as that episode did
+    video = re.search(r"video of the final policy: \S+ \(depth (-?[0-9.]+) mm, success (True|False)", out)
+    assert video, out[-2000:]
+    assert video.group(2) == str(final["per_episode"][0]["success"])
     assert [e["start_seed"] for e in prior["per_episode"]] == [e["start_seed"] for e in final["per_episode"]]
     assert "| the prior (before iteration 1) | 1 |" in summary and "| learned (after iteration 2) | 1 |" in summary
     # eval_every 1 over ROS: after iteration 1 between the iterations, after 2 the final evaluation itself

@@ -25,6 +25,7 @@ ROS; this module steps the simulated world and closes each decision with the sim
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -100,6 +101,7 @@ class RolloutRunner:
         self.arm: ArmModel | None = None
         self.controller: FlowController | None = None
         self._u = np.zeros(self.dim)  # the mean force of the state being answered
+        self.on_step: Callable[[], None] | None = None  # called after every physics step (a video's frames)
         if cfg.task == "block":
             self.x_ref = self.goal[BLOCK_AXES].copy()
         else:
@@ -194,6 +196,8 @@ class RolloutRunner:
                 run.record(arm.x, ctrl.xdot, u, math.nan, torque)
             total += torque
             env.step(tau)
+            if self.on_step is not None:
+                self.on_step()
         return total, fault
 
     def _block_period(self, ev: object, eps: np.ndarray, steps: int, run: EpisodeRun | None) -> tuple[float, int]:

@@ -149,15 +149,13 @@ def final_video(run_dir: Path) -> Path | None:
     from learner_node.trainer import EVAL_SEED_BASE, Trainer
 
     state = torch.load(checkpoint, weights_only=True)
-    cfg = TrainConfig(**state["config"])
+    cfg = TrainConfig(**TrainConfig.with_defaults(state["config"]))
     trainer = Trainer(cfg)
     trainer.load_state_dict(state)
-    params = trainer.policy.to_params(version=trainer.iteration)
     out = run_dir / "final_policy.gif"
-    from learner_node.analysis.video import render_policy_gif
+    from learner_node.analysis.video import render_run_gif
 
-    info = render_policy_gif(params, cfg.task, out, start_seed=trainer.runner.start_seed(EVAL_SEED_BASE),
-                             seconds=cfg.episode_seconds)
+    info = render_run_gif(trainer, out, EVAL_SEED_BASE)  # the first held-out start, as the evaluation runs it
     print(f"[stack] video of the final policy: {out} (depth {info['insertion_depth'] * 1e3:.1f} mm, "
-          f"success {info['success']})", flush=True)
+          f"success {info['success']}; the evaluation's first held-out start)", flush=True)
     return out

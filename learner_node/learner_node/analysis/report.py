@@ -363,7 +363,7 @@ def block_landscape(run_dir: Path, path: Path) -> Path:
     from .plots import plot_energy_landscape
 
     state = torch.load(run_dir / CHECKPOINT, weights_only=True)
-    cfg = TrainConfig(**state["config"])
+    cfg = TrainConfig(**TrainConfig.with_defaults(state["config"]))
     trainer = Trainer(cfg)
     trainer.load_state_dict(state)
     initial = build_policy(cfg, trainer.x_ref)
@@ -446,9 +446,9 @@ exist; everything in the table is computed from them.
     return out_dir / "README.md"
 
 
-_SHOWN = ("n_flow", "n_hidden", "flow_init", "stiffness", "stiffness_axial", "damping", "damping_axial",
-          "episode_seconds", "decision_period", "rollouts_per_iter", "learning_rate", "target_kl", "start",
-          "mlp_hidden", "gains", "exploration", "param_sigma_gains", "param_lr", "param_sigma_lr", "param_sigma_decay")
+_SHOWN = ("n_flow", "n_hidden", "flow_init", "stiffness", "stiffness_axial", "damping",
+          "episode_seconds", "decision_period", "rollouts_per_iter", "learning_rate", "start", "gains",
+          "exploration", "param_sigma_gains", "param_lr", "param_sigma_lr", "param_sigma_decay")
 
 
 # ---------------------------------------------------------------------- CLI
