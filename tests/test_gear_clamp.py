@@ -40,7 +40,7 @@ def test_config_selects_the_task():
     # spread the ablation was measured with (0.5, no settling)
     learn = TrainConfig.from_sources(CONFIG.parent / "gear_learn.yaml",
                                      {"task": "gear_clamp", "potential_force_bound": 0.0, "param_sigma_gains": 0.5,
-                                      "param_settle_rule": "mean", "param_sigma_settle": 1.0})
+                                      "param_settle_rule": "mean", "param_sigma_settle": 1.0, "iterations": 100})
     assert cfg == learn
 
 
