@@ -1,8 +1,11 @@
 """Fingerprints of the shipped learner configs: 2 in-process iterations each, metrics and final weights.
 
-``python tests/fingerprint.py --write`` stores them in tests/fingerprints/; ``test_fingerprints.py``
-recomputes them and compares to 1e-9, so a refactor of the learner cannot change what the shipped
-configs learn without a test saying so.
+``python tests/fingerprint.py --write`` stores them in tests/fingerprints/<cpu>/, one folder per kind of
+CPU (LLVM's name for the host: numba, MuJoCo and torch pick their code by CPU, and contact dynamics
+turn the last bit of a sum into another success rate within two iterations, so numbers are only equal
+on the same kind). ``test_fingerprints.py`` recomputes them and compares to 1e-9 with this CPU's, so a
+refactor of the learner cannot change what the shipped configs learn without a test saying so.
+``first-machine/``: written on the machine the fingerprints were first stored on, its CPU not recorded.
 """
 
 from __future__ import annotations
@@ -27,6 +30,23 @@ RUNS: dict[str, list[str]] = {
     "peg": ["config/peg.yaml"],
     "block": ["config/block.yaml"],
 }
+
+
+def machine() -> str:
+    """This CPU's kind as LLVM names it (``znver4``, ``skylake-avx512``, ...): the fingerprints' folder."""
+    try:
+        import llvmlite.binding as llvm
+
+        return str(llvm.get_host_cpu_name()) or "unknown"
+    except Exception:  # no llvmlite: one folder for every CPU of this architecture
+        import platform
+
+        return platform.machine() or "unknown"
+
+
+def stored(name: str) -> dict[str, Any]:
+    """Every stored fingerprint of ``name``: {folder (a CPU kind): fingerprint}."""
+    return {f.parent.name: json.loads(f.read_text()) for f in sorted(FOLDER.glob(f"*/{name}.json"))}
 
 
 def _config(files: list[str]):
@@ -109,9 +129,9 @@ def main(argv: list[str] | None = None) -> int:
     bad = 0
     for name in args.names:
         fp = compute(name)
-        path = FOLDER / f"{name}.json"
+        path = FOLDER / machine() / f"{name}.json"
         if args.write:
-            FOLDER.mkdir(exist_ok=True)
+            path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps(fp, indent=0) + "\n")
             print(f"wrote {path}")
         else:
