@@ -28,6 +28,8 @@ def policy_parameters() -> PolicyParameters:
     m.stiffness = np.diag([4.0, 4.0, 4.0]).reshape(-1).tolist()
     m.damping = np.eye(3).reshape(-1).tolist()
     m.x_ref = [0.5, 0.0, 0.25]
+    m.potential_force_bound, m.k_rot, m.d_rot, m.joint_damping = 60.0, 30.0, 3.0, 0.5
+    m.stiffness_floor, m.held_part = 2.5, "peg"
     return m
 
 

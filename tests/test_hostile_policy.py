@@ -12,7 +12,7 @@ from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.control_loop import ControlLoop
 from nf_core import policy_params
 from nf_core.flow_spec import FlowArchitecture
-from nf_core.panda_spec import GEAR_PART
+from nf_core.panda_spec import GEAR_PART, PEG_PART
 from nf_core.policy_params import PolicyParameterError, PolicyParameters
 
 ARCH = FlowArchitecture(dim=3, n_flow=2, n_hidden=16, activation="gelu")
@@ -104,7 +104,8 @@ def test_the_trained_settings_pass(arm, task):
     cfg = TrainConfig.from_sources(f"config/{task}.yaml", {"episode_seconds": 0.1, "rollouts_per_iter": 1})
     params = Trainer(cfg).policy.to_params(version=0)
     params.check_limits()
-    loop = ControlLoop(arm)
+    assert params.law.held_part == task  # the part the simulated hand held: the controller's must be it too
+    loop = ControlLoop(arm if task == "gear" else ArmModel(part=PEG_PART))
     assert loop.set_policy(params)
     for sigma in (0.5, 5.0, 30.0):
         params.log_std = np.array([math.log(sigma)])

@@ -142,16 +142,14 @@ def test_parameter_exploration_over_ros_equals_the_in_process_trainer(tmp_path):
     assert_same_learning(over_ros[:1], in_process[:1])
     assert over_ros[1]["return_mean"] == pytest.approx(in_process[1]["return_mean"], rel=1e-4)
     assert "policy version 1001 installed" in arm_log and "policy version 2000 installed" in arm_log
-    # both read gear_learn.yaml: the learner found the arm's controller running its law (60 N bound)
-    assert "arm /: its controller runs the learner's law (potential_force_bound 60)" in (
-        tmp_path / "learner.log").read_text()
-    assert json.loads((tmp_path / "run" / "arms.json").read_text())["arms"]["/"]["law"]["differ"] == []
+    # the policy carries its law: the arm's controller runs the task file's 60 N bound it came with
+    assert "its law: force bound 60 N" in arm_log
 
 
-def test_the_learner_says_when_an_arms_controller_runs_another_law(tmp_path):
-    """A controller started with another potential_force_bound than the learner's (the Franka stack
-    reads franka.yaml, the learner the task file): the learner reads it from the arm, logs both values
-    and keeps them in arms.json; it trains on (the rollouts are the arm's), but nothing differs silently."""
+def test_a_controller_configured_with_another_law_runs_the_policys_and_says_so(tmp_path):
+    """The law travels with the policy: a controller given its own potential_force_bound (as an old
+    hardware file would) warns that the parameter is ignored, and runs the bound the learner's policy
+    carries (60 N from gear_learn.yaml), not its own."""
     domain = allocate_domain_id()
     config = str(REPO / "config" / "gear_learn.yaml")
     arm = [RosProcess(["-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", config, "-p",
@@ -163,12 +161,10 @@ def test_the_learner_says_when_an_arms_controller_runs_another_law(tmp_path):
         assert wait_exit(lrn, 240) == 0, lrn.log() + logs(arm)
     finally:
         stop(arm)
-    log = lrn.log()
-    assert ("arm /: its controller runs another law than the learner's settings: potential_force_bound 30.0 "
-            "on the arm, 60 in the learner") in log, log
-    law = json.loads((tmp_path / "run" / "arms.json").read_text())["arms"]["/"]["law"]
-    assert law == {"checked": True, "controller": {"potential_force_bound": 30.0},
-                   "learner": {"potential_force_bound": 60.0}, "differ": ["potential_force_bound"]}
+    arm_log = logs(arm)
+    assert ("parameter(s) potential_force_bound ignored: the law travels with the policy" in arm_log
+            and "the policy's values win" in arm_log), arm_log
+    assert "its law: force bound 60 N (0: off), k_rot 30 Nm/rad" in arm_log, arm_log
 
 
 def test_a_latched_fault_makes_the_learner_wait_for_a_person_and_go_on_without_losing_the_iteration(tmp_path):

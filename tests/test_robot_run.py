@@ -35,15 +35,11 @@ def test_franky_gets_the_cells_goal_once_for_both_nodes(tmp_path):
     assert _value(cmds["learner"], "learner_node:policy_subscribers") == "2" and "recorder" in cmds
 
 
-def test_the_arms_controller_runs_the_task_files_force_bound(tmp_path):
-    """The learner reads the task file, the Franka stack its hardware file: the bound on the potential's
-    pull (gear_learn.yaml: 60 N) must reach the controller too, or the arm runs another law."""
+def test_the_arms_controller_gets_no_law_of_its_own(tmp_path):
+    """The force bound and gains travel with the policy (its law): the Franka stack's command sets none."""
     cmds = robot_commands(_parse([*CONFIGS, "--out", str(tmp_path)]), tmp_path, record=False)
-    assert _value(cmds["arm"], "nf_controller:potential_force_bound") == "60.0"
-    task = tmp_path / "task.yaml"
-    task.write_text("/**:\n  ros__parameters:\n    task: gear\n")
-    cmds = robot_commands(_parse([f"--config={task}", CONFIGS[1], "--out", str(tmp_path)]), tmp_path, record=False)
-    assert _value(cmds["arm"], "nf_controller:potential_force_bound") == "0.0"
+    for name in ("potential_force_bound", "k_rot", "d_rot", "joint_damping"):
+        assert not any(name in a for a in cmds["arm"]), cmds["arm"]
 
 
 def test_a_real_arm_needs_a_measured_goal_and_waits_for_a_person(tmp_path, capsys):

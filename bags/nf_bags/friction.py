@@ -71,7 +71,7 @@ from typing import Any
 import numpy as np
 
 from .bagfile import BagError, scan
-from .reader import read_messages, stamp_ns
+from .reader import policies, read_messages, stamp_ns
 from .topics import JOINT_STATES, TASK_STATUS, arm_of, arm_topic
 
 EFFORTS = ("auto", "applied", "no-gravity")
@@ -489,7 +489,10 @@ def identify_bag(bag: str | Path, *, arm: str | None = None, model: str = "auto"
     if held_part == "auto":
         if task == "block":
             raise NoJointStatesError(f"{topic} is the block task's (two slide joints, no arm)")
-        if task is None:
+        learned = next((str(m.held_part) for m in policies(bag) if getattr(m, "held_part", "")), "")
+        if learned:
+            part, part_source = learned, "the recorded policy's law"
+        elif task is None:
             part, part_source = "gear", "no task status in the bag: the drivers' default held part"
         else:
             part, part_source = ("peg" if task == "peg" else "gear"), f"the recorded task {task!r}"

@@ -23,6 +23,7 @@ import yaml
 
 from nf_core.flow_spec import FLOW_INITS
 from nf_core.friction import FrictionRanges
+from nf_core.policy_params import PolicyLaw
 
 TASKS = ("gear", "peg", "block", "gear_clamp")
 POLICIES = ("nf", "mlp")
@@ -283,6 +284,17 @@ class TrainConfig:
     def dim(self) -> int:
         """Task-space dimension: 2 for the block (x, z), 3 for the arm tasks."""
         return 2 if self.task == "block" else 3
+
+    @property
+    def held_part(self) -> str:
+        """The part in the simulated hand: the peg for the peg task, else the gear."""
+        return "peg" if self.task == "peg" else "gear"
+
+    def policy_law(self) -> PolicyLaw:
+        """The law the policy runs under (force bound, stiffness floor, held part; the gains' defaults):
+        it travels with the policy to every controller."""
+        return PolicyLaw(potential_force_bound=self.potential_force_bound, stiffness_floor=self.stiffness_floor,
+                         held_part=self.held_part)
 
     def friction_ranges(self) -> FrictionRanges:
         """The per-episode joint friction ranges (``nf_core.friction``; off when both are [0, 0])."""

@@ -16,13 +16,14 @@ the one it has, so restart it (or pass a larger ``--version``) to go back to an 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from nf_core.policy_params import PolicyParameters
+from nf_core.policy_params import PolicyLaw, PolicyParameters
 
 
 def load_checkpoint_policy(path: str | Path) -> tuple[PolicyParameters, int, float]:
@@ -39,7 +40,10 @@ def load_checkpoint_policy(path: str | Path) -> tuple[PolicyParameters, int, flo
     policy = build_policy(cfg, np.zeros(cfg.dim))
     policy.load_state_dict(state["policy"])
     iteration = int(state["iteration"])
-    return policy.to_params(version=iteration), iteration, cfg.flow_input_scale
+    params = policy.to_params(version=iteration)
+    if "law" in state:  # the law it was learned with, as the checkpoint holds it (else its settings')
+        params.law = PolicyLaw(**state["law"])
+    return params, iteration, cfg.flow_input_scale
 
 
 def prepare(params: PolicyParameters, x_ref: list[float] | None, version: int | None,
@@ -55,6 +59,7 @@ def prepare(params: PolicyParameters, x_ref: list[float] | None, version: int | 
         if not np.array_equal(S, np.diag(np.diag(S))):
             raise ValueError("a stiffness floor needs a diagonal S (learned gains); this policy's S is full")
         params.stiffness = np.diag(np.maximum(np.diag(S), stiffness_floor))
+        params.law = dataclasses.replace(params.law, stiffness_floor=max(params.law.stiffness_floor, stiffness_floor))
     if x_ref is not None:
         from .flow import move_flow_to_goal
 
@@ -110,7 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     node.get_logger().info(f"published {args.checkpoint} (iteration {iteration}) as version {params.version}: "
                            f"n_flow={a.n_flow}, n_hidden={a.n_hidden}, x_ref={params.x_ref.tolist()}, "
                            f"S diagonal {np.round(np.diag(params.stiffness), 1).tolist()} N/m, "
-                           f"noise std {np.exp(params.log_std).tolist()} N; latched until stopped")
+                           f"noise std {np.exp(params.log_std).tolist()} N; its law: force bound "
+                           f"{params.law.potential_force_bound:g} N (0: off), held part {params.law.held_part}, "
+                           f"stiffness floor {params.law.stiffness_floor:g} N/m; latched until stopped")
     deadline = time.monotonic() + args.seconds if args.seconds > 0 else float("inf")
     try:
         while rclpy.ok() and time.monotonic() < deadline:

@@ -34,8 +34,6 @@ import rclpy
 from nf_msgs.action import RunEpisode
 from nf_msgs.msg import ControllerStatus, RolloutChunk
 from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
-from rcl_interfaces.msg import ParameterType
-from rcl_interfaces.srv import GetParameters
 from rclpy.action import ActionClient, get_action_names_and_types
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
@@ -82,9 +80,6 @@ NODE_PARAMETERS = {  # learner_node's own settings besides TrainConfig's
     # arms go on; "auto": clear it at once (simulation only: the next reset puts the arm somewhere new).
     "on_safe_hold": "wait",
     "clear_fault_service": "nf_controller/clear_fault",  # under each arm's namespace
-    # Under each arm's namespace: the controller's parameter service, read once per arm for the law
-    # settings the learner's must match (LAW_SETTINGS); a differing one is logged and kept in arms.json.
-    "controller_parameters_service": "nf_controller/get_parameters",
     # Subscribers of each arm's policy_parameters to wait for before its first episode (the controller;
     # 2 with a bag recorder, which subscribes only once it sees this publisher: a short run could end
     # before it did, and the bag would hold no policy). Waited for at most server_timeout.
@@ -99,10 +94,6 @@ AUTO_CLEARS_PER_EPISODE = 3  # "auto": an episode that faults this often after c
 ARM_SETTLE = 1.0  # s an arm's server is seen before its first goal: Fast DDS drops a reply to an unmatched client
 GOAL_ANSWER_TIMEOUT = 30.0  # s for the controller to accept or reject a goal
 ARMS_FILE = "arms.json"  # which arm ran which rollout of every batch, what was lost
-# Settings of the control law that the learner's config and each arm's controller must share: with
-# another bound on the potential's pull the arm runs (and the policy learns for) another controller.
-LAW_SETTINGS = ("potential_force_bound",)
-LAW_CHECK_TIMEOUT = 5.0  # s for an arm's controller to answer its parameters
 DISCOVERY_PERIOD = 1.0  # s between looks for new arms while a batch runs
 _FIELDS = {f for f in TrainConfig.__dataclass_fields__}
 
@@ -130,7 +121,7 @@ class ArmLink:
     """One arm stack as the learner sees it: its action client, rollout chunks, controller status,
     policy publisher and clear_fault client, all under its namespace."""
 
-    def __init__(self, node: Node, ns: str, clear_fault_service: str, parameters_service: str) -> None:
+    def __init__(self, node: Node, ns: str, clear_fault_service: str) -> None:
         self.ns = ns
         self.name = ns or "/"
         self.chunks = ChunkCollector()
@@ -142,9 +133,6 @@ class ArmLink:
         self.clear_service = under(ns, clear_fault_service)
         node.create_subscription(ControllerStatus, under(ns, CONTROLLER_STATUS), self._on_status, 10)
         self.clear_client = node.create_client(Trigger, self.clear_service)
-        self.parameters_service = under(ns, parameters_service)
-        self.parameters_client = node.create_client(GetParameters, self.parameters_service)
-        self.law: dict[str, Any] | None = None  # what check_law found (None: not checked yet)
         self.policy_pub = node.create_publisher(PolicyParametersMsg, under(ns, POLICY_PARAMETERS), qos.POLICY)
         node.create_subscription(RolloutChunk, under(ns, ROLLOUTS), self.chunks.add, qos.ROLLOUTS)
         self.action = ActionClient(node, RunEpisode, under(ns, RUN_EPISODE))
@@ -223,8 +211,7 @@ class LearnerNode(Node):
         if ns in self.arms:
             return self.arms[ns]
         with self.spin_lock:  # entities change while no spin slice runs
-            arm = ArmLink(self, ns, self.settings["clear_fault_service"],
-                          self.settings["controller_parameters_service"])
+            arm = ArmLink(self, ns, self.settings["clear_fault_service"])
         self.arms[ns] = arm
         if self.policy is not None:
             self._publish(arm, *self.policy)
@@ -285,33 +272,6 @@ class LearnerNode(Node):
             return "clear_fault did not answer"
         arm.mode = None  # the next status tells
         return future.result().message
-
-    def check_law(self, arm: ArmLink, timeout: float = LAW_CHECK_TIMEOUT) -> tuple[bool, str]:
-        """Read ``LAW_SETTINGS`` from the arm's controller and compare them with the learner's config:
-        (True, a line for the log) if they match, (False, what differs or why they could not be read)
-        otherwise. Kept in ``arm.law`` (for arms.json)."""
-        if not arm.parameters_client.wait_for_service(timeout_sec=timeout):
-            arm.law = {"checked": False, "reason": f"no {arm.parameters_service} service"}
-            return False, (f"could not read the controller's {', '.join(LAW_SETTINGS)} (no {arm.parameters_service} "
-                           f"service within {timeout:.0f} s): the learner assumes its own")
-        with self.spin_lock:
-            future = arm.parameters_client.call_async(GetParameters.Request(names=list(LAW_SETTINGS)))
-        if not _wait(future, time.monotonic() + timeout):
-            arm.law = {"checked": False, "reason": "no answer"}
-            return False, f"{arm.parameters_service} did not answer: the learner assumes its own law settings"
-        values = [v.double_value if v.type == ParameterType.PARAMETER_DOUBLE else None
-                  for v in future.result().values]
-        arm_law = dict(zip(LAW_SETTINGS, values, strict=False))
-        ours = {k: float(getattr(self.cfg, k)) for k in LAW_SETTINGS}
-        differ = [k for k in LAW_SETTINGS if arm_law.get(k) is None or abs(arm_law[k] - ours[k]) > 1e-9]
-        arm.law = {"checked": True, "controller": arm_law, "learner": ours, "differ": differ}
-        if not differ:
-            return True, "its controller runs the learner's law (" + ", ".join(
-                f"{k} {ours[k]:g}" for k in LAW_SETTINGS) + ")"
-        return False, ("its controller runs another law than the learner's settings: " + "; ".join(
-            f"{k} {arm_law.get(k)} on the arm, {ours[k]:g} in the learner" for k in differ)
-            + ". The policy learns for the arm's; give both the same task file (or the same -p) to train "
-              "the one the learner's config describes")
 
     def run_episode(self, arm: ArmLink, version: int, start_seed: int | None, noise_seed: int,
                     deterministic: bool, timeout: float) -> EpisodeRecord:
@@ -474,9 +434,6 @@ class RosTraining:
                 LOG.warning("fewer than %d subscribers of %s after %.0f s: going on (a recorder may miss policies)",
                             s["policy_subscribers"], under(arm.ns, POLICY_PARAMETERS), s["server_timeout"])
             arm.subscribers_checked = True
-        if arm.law is None:
-            same, line = node.check_law(arm)
-            (LOG.info if same else LOG.warning)("arm %s: %s", arm.name, line)
         while not self.stop.is_set():
             if not queue.wait(0.2, for_work=True):
                 if arm.lost_reason(s["arm_timeout"]):
@@ -538,9 +495,6 @@ class RosTraining:
             total = self.arms_log["arms"].setdefault(arm, {})
             for k, v in c.items():
                 total[k] = total.get(k, 0) + v
-        for link in list(self.node.arms.values()):  # what each arm's controller runs (check_law)
-            if link.law is not None:
-                self.arms_log["arms"].setdefault(link.name, {})["law"] = link.law
         self.arms_log["batches"].append({
             "batch": what, "ran_on": queue.ran_on(), "dropped": queue.dropped,
             "dispatches": [{"rollout": d.ticket.index, "arm": d.ticket.arm,

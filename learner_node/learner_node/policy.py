@@ -23,7 +23,7 @@ from torch import nn
 from torch.autograd.function import FunctionCtx, once_differentiable
 
 from nf_core.flow_spec import FlowArchitecture
-from nf_core.policy_params import POLICY_LIMITS, PolicyParameters
+from nf_core.policy_params import POLICY_LIMITS, PolicyLaw, PolicyParameters
 
 from .flow import RealNVPFlow
 from .flow_kernels import force_backward, force_forward
@@ -100,11 +100,13 @@ class NFPolicy(GaussianForceMixin, nn.Module):
         flow_init: str = "random",
         learn_gains: bool = False,
         stiffness_floor: float = 0.0,
+        law: PolicyLaw | None = None,
     ) -> None:
         """S, D default to identity, x_ref to zero; log_std defaults to ``[log(sigma_init)]`` (shared);
         without ``weights`` the flow starts from ``init_flow_weights(seed, flow_init)``. ``learn_gains``:
         S and D must be diagonal; their log-diagonals become the parameters ``ln_s`` and ``ln_d``.
-        ``stiffness_floor`` (N/m, learned gains only; 0: none): no diagonal entry of S goes below it."""
+        ``stiffness_floor`` (N/m, learned gains only; 0: none): no diagonal entry of S goes below it.
+        ``law``: the law the policy runs under (``to_params`` carries it; default ``PolicyLaw`` with the floor)."""
         super().__init__()
         d = arch.dim
         self.arch = arch
@@ -136,6 +138,9 @@ class NFPolicy(GaussianForceMixin, nn.Module):
         self.ln_s_floor = math.log(stiffness_floor) if stiffness_floor > 0.0 else None
         if self.ln_s_floor is not None and bool((self.ln_s < self.ln_s_floor).any()):
             raise ValueError(f"S {torch.diagonal(self.S).tolist()} starts below stiffness_floor {stiffness_floor}")
+        if law is not None and stiffness_floor > 0.0 and law.stiffness_floor != stiffness_floor:
+            raise ValueError(f"stiffness_floor {stiffness_floor} differs from the law's {law.stiffness_floor}")
+        self.law = law if law is not None else PolicyLaw(stiffness_floor=stiffness_floor)
 
     # ---- gains -------------------------------------------------------------------------------
     def gains(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -221,6 +226,7 @@ class NFPolicy(GaussianForceMixin, nn.Module):
                 damping=D.to(torch.float64).cpu().numpy().copy(),
                 x_ref=self.x_ref.to(torch.float64).cpu().numpy().copy(),
                 version=int(version),
+                law=self.law,
             )
 
     @classmethod
@@ -234,4 +240,5 @@ class NFPolicy(GaussianForceMixin, nn.Module):
             x_ref=p.x_ref,
             log_std=p.log_std,
             dtype=dtype,
+            law=p.law,
         )

@@ -106,7 +106,7 @@ class RolloutRunner:
             self.x_ref = self.goal[BLOCK_AXES].copy()
         else:
             # the controller's arm model carries the same part (mass, TCP) as the simulated hand
-            self.arm = ArmModel(part=panda_spec.held_part_by_name("peg" if cfg.task == "peg" else "gear"))
+            self.arm = ArmModel(part=panda_spec.held_part_by_name(cfg.held_part))
             self.x_ref = self.goal.copy()
         if cfg.goal is not None:  # a goal measured on a real cell: the policy's x_ref and the reward's goal
             self.x_ref = np.asarray(cfg.goal, dtype=np.float64)
@@ -148,8 +148,8 @@ class RolloutRunner:
         run = EpisodeRun(self.episode_spec(sigma), rng=noise_rng)
         period = self._arm_period if self.arm is not None else self._block_period
         if self.controller is None and self.arm is not None:
-            self.controller = FlowController(self.arm, evaluator,
-                                             TorqueLawConfig(potential_force_bound=cfg.potential_force_bound))
+            # the law the policy carries to every controller (PolicyLaw), here as on the arm
+            self.controller = FlowController(self.arm, evaluator, TorqueLawConfig().with_policy_law(cfg.policy_law()))
         if self.controller is not None:
             self.controller.set_evaluator(evaluator)
             self.controller.reset_rate_limit()

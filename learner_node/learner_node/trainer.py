@@ -10,6 +10,7 @@ checkpoint, so a restarted run continues exactly as an uninterrupted one.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import logging
 import math
@@ -73,7 +74,7 @@ def build_policy(cfg: TrainConfig, x_ref: np.ndarray) -> NFPolicy | MLPPolicy:
         return NFPolicy(arch, weights=weights, stiffness=cfg.stiffness_matrix(), damping=cfg.damping_matrix(),
                         x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed,
                         flow_init=cfg.flow_init, learn_gains=cfg.gains == "learned",
-                        stiffness_floor=cfg.stiffness_floor)
+                        stiffness_floor=cfg.stiffness_floor, law=cfg.policy_law())
     return MLPPolicy(d, MLP_HIDDEN, MLP_ACTIVATION, x_ref=x_ref, sigma_init=cfg.sigma_init, seed=cfg.seed)
 
 
@@ -331,6 +332,8 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "history": self.history,
             "started_from": self.started_from,
+            # what decides the torque besides the policy's tensors (deploy_policy sends it with them)
+            "law": dataclasses.asdict(self.cfg.policy_law()),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:

@@ -101,9 +101,6 @@ def robot_commands(args: argparse.Namespace, run_dir: Path, record: bool) -> dic
            "-p", f"franka_driver:goal:={goal}"]
     if franky:  # a simulator: any kernel, and reflexes recovered without a person
         arm += ["-p", "franka_driver:realtime:=ignore", "-p", "franka_driver:automatic_error_recovery:=true"]
-    # the law the learner's rollouts assume: the task file's bound on the potential's pull, which the
-    # hardware file (its own on purpose: franka.yaml) does not carry
-    arm += ["-p", f"nf_controller:potential_force_bound:={task_force_bound(args.config)!r}"]
     learner = [py, "-m", "learner_node.node", "--ros-args", "--params-file", str(args.config),
                *(["--params-file", str(args.arm_settings)] if arm_settings_apply(args) else []),
                "-p", f"learner_node:goal:={goal}", "-p", f"learner_node:out_dir:={run_dir / 'learner'}",
@@ -140,11 +137,6 @@ def task_shared(config: Path) -> dict:
     for key in ("/**", "ros__parameters"):
         shared = shared.get(key) if isinstance(shared, dict) else None
     return shared if isinstance(shared, dict) else {}
-
-
-def task_force_bound(config: Path) -> float:
-    """The task file's ``potential_force_bound`` (N; 0.0, off, if it sets none), as a float for ``-p``."""
-    return float(task_shared(config).get("potential_force_bound", 0.0))
 
 
 def simulated_friction(config: Path) -> str:

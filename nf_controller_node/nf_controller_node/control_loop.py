@@ -325,6 +325,10 @@ class ControlLoop:
         state-free part of a swap (call it off the tick thread). Raises ``PolicyParameterError``."""
         if params.arch.dim != 3:
             raise PolicyParameterError(f"the arm needs a 3-D flow, got dim={params.arch.dim}")
+        held = self.controller.arm.held_part
+        if params.law.held_part != held:
+            raise PolicyParameterError(f"the policy was learned with held_part {params.law.held_part!r}; this "
+                                       f"controller's hand holds {held!r} (its held_part parameter)")
         params.check_limits(self.limits, reach=True)
         try:
             return FlowEvaluator.from_params(params)
@@ -355,6 +359,7 @@ class ControlLoop:
 
     def _install(self, params: PolicyParameters, evaluator: FlowEvaluator) -> None:
         self.controller.set_evaluator(evaluator)
+        self.controller.set_policy_law(params.law)  # the policy's gains and force bound
         self.policy = params
         self._pending = None
         self.monitor.reset()

@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from nf_core.policy_params import PolicyLaw
+
 from .arm_model import ArmModel
 from .flow_eval import FlowEvaluator, force_kernel
 from .serial_chain import chain_kinematics
@@ -215,6 +217,17 @@ class FlowController:
         self._gains = np.array([law.k_rot, law.d_rot, law.joint_damping, float(law.gravity_compensation),
                                 law.max_step, law.joint_limit_stiffness, law.hold_damping, law.hold_stiffness,
                                 *self._posture])
+
+    def set_policy_law(self, law: PolicyLaw) -> None:
+        """Run the gains and force bound a policy carries (``PolicyLaw``); call only between episodes.
+        Unlike ``set_law`` it keeps the hold's anchor: only the flow's side of the law changes."""
+        new = self.law.with_policy_law(law)
+        if new is self.law:
+            return
+        self.law = new
+        self._gains[0:3] = (new.k_rot, new.d_rot, new.joint_damping)
+        if isinstance(getattr(self, "evaluator", None), FlowEvaluator):
+            self.evaluator.set_force_bound(new.potential_force_bound)
 
     def set_posture(self, q_posture: np.ndarray | None, stiffness: float = 0.0, damping: float = 0.0) -> None:
         """Add a joint spring (``stiffness``, Nm/rad) to ``q_posture`` and joint damping (``damping``,

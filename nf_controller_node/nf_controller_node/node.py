@@ -70,17 +70,12 @@ _LAW = TorqueLawConfig()
 PARAMETERS = {
     "gravity_compensation": (True, "add g(q) to the torque; false when the driver compensates gravity (Franka)"),
     "held_part": ("gear", f"mass model and TCP of the part in the hand: {' | '.join(HELD_PART_NAMES)}"),
-    "k_rot": (_LAW.k_rot, "orientation stiffness about the insertion orientation, Nm/rad"),
-    "d_rot": (_LAW.d_rot, "orientation damping, Nm s/rad"),
-    "joint_damping": (_LAW.joint_damping, "joint damping for the null space, Nm s/rad"),
     "hold_damping": (_LAW.hold_damping, "joint damping of the safe hold, Nm s/rad"),
     "hold_stiffness": (_LAW.hold_stiffness, "Nm/rad of the safe hold's joint spring to where the hold began "
                        "(its anchor; 0: damping only, the arm coasts)"),
     "joint_limit_stiffness": (_LAW.joint_limit_stiffness, "Nm/rad of the springs that push a joint back from "
                               "its limit (0: off; conservative, so every policy stays stable)"),
     "joint_limit_margin": (_LAW.joint_limit_margin, "rad before a joint limit where its spring starts"),
-    "potential_force_bound": (_LAW.potential_force_bound, "N (latent space): the flow potential's pull is bounded "
-                              "to this, the potential growing linearly beyond (0: off; still provably stable)"),
     "deadline": (0.001, "s; a step taking longer is a deadline miss"),
     "max_consecutive_misses": (20, "deadline misses in a row that latch the safe hold (0: never)"),
     "state_timeout": (0.0, "s without a joint state before the safe hold (realtime drivers; 0: off)"),
@@ -97,6 +92,8 @@ PARAMETERS = {
     "reset_timeout": (60.0, "composed: s the driver may take to reset the world (a robot moves there)"),
     "diagnostics_period": (1.0, "s between /diagnostics messages"),
 }
+# The law's settings that travel with the policy (nf_msgs/PolicyParameters): set here, they are ignored
+POLICY_LAW_PARAMETERS = ("potential_force_bound", "k_rot", "d_rot", "joint_damping", "stiffness_floor")
 _MODE_NAMES = {MODE_IDLE: "idle", MODE_RUNNING: "running", MODE_SAFE_HOLD: "safe_hold", MODE_RESETTING: "resetting"}
 
 
@@ -129,11 +126,9 @@ def _loop_from(p: dict, arm: ArmModel | None = None, joint_names: Sequence[str] 
     for name in ("status_rate", "diagnostics_period"):
         if not p[name] > 0.0:
             raise ValueError(f"{name} must be > 0, got {p[name]}")
-    law = TorqueLawConfig(k_rot=p["k_rot"], d_rot=p["d_rot"], joint_damping=p["joint_damping"],
-                          hold_damping=p["hold_damping"], hold_stiffness=p["hold_stiffness"],
+    law = TorqueLawConfig(hold_damping=p["hold_damping"], hold_stiffness=p["hold_stiffness"],
                           gravity_compensation=p["gravity_compensation"],
-                          joint_limit_stiffness=p["joint_limit_stiffness"], joint_limit_margin=p["joint_limit_margin"],
-                          potential_force_bound=p["potential_force_bound"])
+                          joint_limit_stiffness=p["joint_limit_stiffness"], joint_limit_margin=p["joint_limit_margin"])
     config = LoopConfig(deadline=p["deadline"], max_consecutive_misses=p["max_consecutive_misses"],
                         state_timeout=p["state_timeout"], idle_mode=p["idle_mode"])
     if not p["chunk_decisions"] >= 1:
@@ -173,6 +168,12 @@ class NFControllerNode(Node):
         super().__init__(name)
         p = declare_read_only(self, PARAMETERS)
         self.params = p
+        # rclpy keeps every override given to the node (parameter files, -p), declared or not
+        stale = sorted(set(getattr(self, "_parameter_overrides", {})) & set(POLICY_LAW_PARAMETERS))
+        if stale:
+            self.get_logger().warning(
+                f"parameter(s) {', '.join(stale)} ignored: the law travels with the policy (nf_msgs/PolicyParameters, "
+                "set in the learner's task file); the policy's values win")
         self.composed = composed
         self.loop = _loop_from(p, arm, joint_names)
         self.host = ControllerHost(self.loop)
@@ -549,6 +550,11 @@ class NFControllerNode(Node):
         future = self._on_driver_thread(lambda: loop.set_policy(params, evaluator))
         a = params.arch
         what = f"n_flow={a.n_flow}, n_hidden={a.n_hidden}, {a.activation}, x_ref={params.x_ref.tolist()}"
+        if loop.policy is None or loop.policy.law != params.law:
+            law = params.law
+            what += (f"; its law: force bound {law.potential_force_bound:g} N (0: off), k_rot {law.k_rot:g} Nm/rad, "
+                     f"d_rot {law.d_rot:g} Nm s/rad, joint damping {law.joint_damping:g} Nm s/rad, "
+                     f"stiffness floor {law.stiffness_floor:g} N/m, held part {law.held_part}")
 
         def report(f: ConcurrentFuture) -> None:
             try:

@@ -6,17 +6,21 @@ The kernels are compiled with numba so one call costs about a microsecond in the
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
 
 from nf_core import panda_spec
+from nf_core.policy_params import PolicyLaw
 
 # Result flags of the torque kernels (bit mask).
 CLAMPED = 1  # a joint torque hit its limit
 RATE_LIMITED = 2  # a joint torque change hit the rate limit
 NOT_FINITE = 4  # the law produced NaN/Inf: the output is the previous command instead
+# The law's settings a policy carries (nf_core.policy_params.PolicyLaw); the rest belong to the arm.
+POLICY_GAINS = ("potential_force_bound", "k_rot", "d_rot", "joint_damping")
 
 
 @dataclass
@@ -76,6 +80,13 @@ class TorqueLawConfig:
         self.q_min, self.q_max = q_min, q_max
         self.q_soft_min = q_min + self.joint_limit_margin
         self.q_soft_max = q_max - self.joint_limit_margin
+
+    def with_policy_law(self, law: PolicyLaw) -> TorqueLawConfig:
+        """This law with a policy's gains and force bound (``POLICY_GAINS`` of a ``PolicyLaw``); itself
+        if they are already its own."""
+        if all(getattr(self, k) == getattr(law, k) for k in POLICY_GAINS):
+            return self
+        return dataclasses.replace(self, **{k: float(getattr(law, k)) for k in POLICY_GAINS})
 
     @property
     def max_step(self) -> float:

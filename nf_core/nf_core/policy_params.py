@@ -1,4 +1,5 @@
-"""Policy parameters (flow weights, noise, stiffness, damping, goal) with validation.
+"""Policy parameters (flow weights, noise, stiffness, damping, goal, and the law around them) with
+validation.
 
 ROS-free: ``from_msg`` reads any object with the fields of ``nf_msgs/msg/PolicyParameters``
 and ``fill_msg`` writes them, so the node modules stay thin and this stays testable.
@@ -13,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from .flow_spec import FlowArchitecture
-from .panda_spec import MAX_REACH
+from .panda_spec import HELD_PART_NAMES, MAX_REACH
 
 
 class PolicyParameterError(ValueError):
@@ -40,6 +41,10 @@ class PolicyLimits:
     # (timings per size: docs/measurements.md, from tests/test_hostile_cost.py --sizes).
     max_flow_params: int = 20_000
     max_reach: float = MAX_REACH  # m, |x_ref| from the arm's base frame origin
+    # The law around the flow (PolicyLaw): gains a 1 kHz step keeps well damped on the Panda's wrist
+    max_k_rot: float = 300.0  # Nm/rad, orientation stiffness
+    max_d_rot: float = 30.0  # Nm s/rad, orientation damping
+    max_joint_damping: float = 10.0  # Nm s/rad, null-space joint damping
 
 
 POLICY_LIMITS = PolicyLimits()
@@ -73,9 +78,49 @@ def _spd_matrix(name: str, values: Any, dim: int) -> np.ndarray:
     return mat
 
 
+@dataclass(frozen=True)
+class PolicyLaw:
+    """What decides the torque besides the flow, S, D and x_ref: it travels with them (message and
+    checkpoint), so every controller that runs a policy runs the law it was learned with."""
+
+    potential_force_bound: float = 0.0  # N (latent space): bound on the potential's pull; 0: off
+    k_rot: float = 30.0  # Nm/rad, orientation stiffness about the insertion orientation
+    d_rot: float = 3.0  # Nm s/rad, orientation damping
+    joint_damping: float = 0.5  # Nm s/rad, null-space joint damping
+    stiffness_floor: float = 0.0  # N/m: no diagonal entry of S below it; 0: none
+    held_part: str = "gear"  # the part in the hand the policy was learned with: gear | peg | none
+
+    def __post_init__(self) -> None:
+        for name in ("potential_force_bound", "k_rot", "d_rot", "joint_damping", "stiffness_floor"):
+            try:
+                value = float(getattr(self, name))
+            except (TypeError, ValueError):
+                value = math.nan
+            if not (math.isfinite(value) and value >= 0.0):
+                raise PolicyParameterError(f"law: {name} must be finite and >= 0, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, value)
+        if self.held_part not in HELD_PART_NAMES:
+            raise PolicyParameterError(f"law: held_part must be one of {HELD_PART_NAMES}, got {self.held_part!r}")
+
+    def check_limits(self, limits: PolicyLimits = POLICY_LIMITS) -> None:
+        """Raise ``PolicyParameterError`` naming the first gain beyond ``limits``."""
+        for name, most, unit in (("k_rot", limits.max_k_rot, "Nm/rad"), ("d_rot", limits.max_d_rot, "Nm s/rad"),
+                                 ("joint_damping", limits.max_joint_damping, "Nm s/rad")):
+            if getattr(self, name) > most:
+                raise PolicyParameterError(f"law: {name} {getattr(self, name):.3g} {unit}, at most {most:.3g} {unit}")
+
+    def differences(self, other: PolicyLaw) -> list[str]:
+        """``name: mine vs theirs`` for every field that differs from ``other``'s."""
+        return [f"{k}: {getattr(self, k)!r} vs {getattr(other, k)!r}" for k in LAW_FIELDS
+                if getattr(self, k) != getattr(other, k)]
+
+
+LAW_FIELDS = tuple(PolicyLaw.__dataclass_fields__)
+
+
 @dataclass
 class PolicyParameters:
-    """Everything the controller needs from the learner: flow weights, log-std, S, D, x_ref."""
+    """Everything the controller needs from the learner: flow weights, log-std, S, D, x_ref, the law."""
 
     arch: FlowArchitecture
     weights: np.ndarray  # flat flow weights, layout in flow_spec
@@ -85,6 +130,7 @@ class PolicyParameters:
     x_ref: np.ndarray  # (dim,), m, goal in the task frame
     version: int = 0
     extra: dict = field(default_factory=dict)
+    law: PolicyLaw = field(default_factory=PolicyLaw)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -101,6 +147,13 @@ class PolicyParameters:
         self.x_ref = _finite_array("x_ref", self.x_ref, d)
         if self.version < 0:
             raise PolicyParameterError(f"version must be >= 0, got {self.version}")
+        if not isinstance(self.law, PolicyLaw):
+            raise PolicyParameterError(f"law: expected a PolicyLaw, got {type(self.law).__name__}")
+        floor = self.law.stiffness_floor
+        low = np.diag(self.stiffness) < floor * (1.0 - _LIMIT_RTOL)
+        if floor > 0.0 and low.any():
+            raise PolicyParameterError(f"stiffness S: diagonal {np.diag(self.stiffness).tolist()} N/m below the law's "
+                                       f"stiffness_floor {floor:g} N/m")
 
     def check_limits(self, limits: PolicyLimits = POLICY_LIMITS, reach: bool = True) -> None:
         """Raise ``PolicyParameterError`` naming the first value beyond ``limits`` (the controller's
@@ -131,6 +184,7 @@ class PolicyParameters:
             if dist >= limits.max_reach:
                 raise PolicyParameterError(
                     f"x_ref: {dist:.3g} m from the arm's base, beyond its reach ({limits.max_reach} m)")
+        self.law.check_limits(limits)
 
     @classmethod
     def from_msg(cls, msg: Any) -> PolicyParameters:
@@ -144,6 +198,8 @@ class PolicyParameters:
             )
         except ValueError as exc:
             raise PolicyParameterError(f"architecture: {exc}") from None
+        law = PolicyLaw(**{k: (str(v) if k == "held_part" else float(v))
+                           for k, v in ((k, getattr(msg, k)) for k in LAW_FIELDS)})
         return cls(
             arch=arch,
             weights=np.asarray(msg.weights, dtype=np.float64),
@@ -152,6 +208,7 @@ class PolicyParameters:
             damping=np.asarray(msg.damping, dtype=np.float64),
             x_ref=np.asarray(msg.x_ref, dtype=np.float64),
             version=int(msg.version),
+            law=law,
         )
 
     def fill_msg(self, msg: Any) -> Any:
@@ -166,4 +223,6 @@ class PolicyParameters:
         msg.stiffness = self.stiffness.reshape(-1).tolist()
         msg.damping = self.damping.reshape(-1).tolist()
         msg.x_ref = self.x_ref.tolist()
+        for k in LAW_FIELDS:
+            setattr(msg, k, getattr(self.law, k))
         return msg
