@@ -19,6 +19,8 @@ from nf_msgs.msg import ControllerStatus
 from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
 from sensor_msgs.msg import JointState
 
+from learner_node.config import TrainConfig
+from learner_node.trainer import Trainer
 from nf_bringup.testing.franky import FrankySim
 from nf_core import qos
 from nf_core.thread_priority import check_priority_allowed
@@ -110,6 +112,22 @@ def test_stack_holds_without_a_policy_then_follows_one(tmp_path):
             assert thread_policies(stack.pid)[stack.pid] == os.SCHED_OTHER  # the executor (main) thread
             assert len(fifo) == (1 if priority else 0), fifo
             print(f"over ROS: {error() * 1e3:.2f} mm from x_ref; driver diagnostics {last[-1]}")
+
+            # deploy_policy as docs/hardware.md gives it: make run's prior (S 300 N/m, its law's 60 N bound)
+            # from a checkpoint, with a measured goal, drives the arm there (idle_mode policy)
+            checkpoint = tmp_path / "checkpoint.pt"
+            Trainer(TrainConfig.from_sources(REPO / "config" / "gear_learn.yaml", {"eval_episodes": 1})
+                    ).save_checkpoint(checkpoint)
+            goal = x0 + np.array([-0.02, 0.03, 0.02])
+            deploy = RosProcess(["-m", "learner_node.deploy", str(checkpoint), "--x-ref", *map(str, goal),
+                                 "--version", "8", "--seconds", "120"], domain, tmp_path / "deploy.log")
+            with deploy:
+                assert probe.spin_until(lambda: statuses[-1][1].policy_version == 8, 30), deploy.log() + stack.log()
+                ticks_at_policy = robot_ticks()
+                assert probe.spin_until(lambda: robot_ticks() > ticks_at_policy + 4000, 300), stack.log()
+                assert error() < 0.01, f"{error() * 1e3:.1f} mm from the deployed goal\n{stack.log()}"
+            assert "its law: force bound 60 N" in stack.log()
+            print(f"deploy_policy: {error() * 1e3:.2f} mm from its goal after 4 s of robot time")
         assert stack.proc.returncode == 0, stack.log()
     finally:
         probe.close()

@@ -1,5 +1,5 @@
-"""``run_robot`` (make run-franka): the commands it starts, its checks, its progress lines. The run
-itself against franky-sim is tests/test_franka_ros.py's learning test and the command in docs/hardware.md."""
+"""``run_robot`` (make run-franka): the commands it starts, its checks, its progress lines, and its main
+end to end against franky-sim (one short iteration; the learning itself: docs/hardware.md's command)."""
 
 from __future__ import annotations
 
@@ -164,3 +164,39 @@ def test_the_arms_stiffness_floor_reaches_a_learner_that_starts_from_a_checkpoin
     with pytest.raises(SystemExit):
         _parse([*CONFIGS, "--out", str(tmp_path), "--stiffness-floor=-5"])
     assert "--stiffness-floor must be >= 0" in capsys.readouterr().err
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.timeout(900)  # reset motions on a simulator that runs below real time on a loaded machine
+def test_run_robot_end_to_end_on_franky_sim(tmp_path):
+    """``make run-franka``'s own main: franky-sim with the gear cell, the Franka stack, the recorder and the
+    learner with gear_learn.yaml + franka_learn.yaml, for one short iteration (3 rollouts of 2 s, one
+    evaluation episode before and after): it exits 0 and leaves the run folder make run leaves, and the
+    arm ran the law the learner's policy carried (the task file's 60 N bound)."""
+    from mcap.reader import make_reader
+
+    from ros_testing import RosProcess, allocate_domain_id
+
+    domain = allocate_domain_id()
+    out = tmp_path / "run"
+    short = ["learner_node:rollouts_per_iter:=3", "learner_node:eval_episodes:=1", "learner_node:episode_seconds:=2.0"]
+    args = ["-m", "nf_bringup.robot_run", "--iterations", "1", "--out", str(out), "--domain-id", str(domain),
+            *[a for kv in short for a in ("--learner-arg=-p", f"--learner-arg={kv}")]]
+    run = RosProcess(args, domain, tmp_path / "run_robot.log")
+    try:
+        assert run.proc.wait(840) == 0, run.log()
+    finally:
+        run.stop()
+    log = run.log()
+    assert "[run] franky-sim up on 127.0.0.1 (FR3, gear cell)" in log and "[run] done in" in log, log
+    history = json.loads((out / "learner" / "metrics.json").read_text())
+    assert [r["iteration"] for r in history] == [1] and history[0]["dropped_episodes"] < 2, history
+    summary = (out / "summary.md").read_text()
+    assert "evaluation" in summary.lower() and (out / "learning_curves.png").exists(), summary
+    assert "its law: force bound 60 N" in (out / "logs" / "arm.log").read_text()
+    bags = list((out / "bag").glob("*.mcap"))
+    assert bags, list((out / "bag").iterdir())
+    with open(bags[0], "rb") as f:  # the mcap library's own reader, not the project's
+        topics = {channel.topic for _, channel, _ in make_reader(f).iter_messages()}
+    assert {"/policy_parameters", "/joint_states", "/rollouts"} <= topics, topics
