@@ -2,9 +2,8 @@
 
 ``make test`` runs the suite on two pytest-xdist workers (most tests wait on other processes, so one
 worker leaves a core idle). Each worker gets its own range of ROS domain ids; a test module stays on
-one worker (module fixtures are built once); the modules that need a machine-wide resource share a
-worker: franky-sim listens on 127.0.0.1's libfranka ports, the two-host tests make network
-namespaces. The longest modules start first so that neither worker is left with a long tail.
+one worker (module fixtures are built once); the modules that start franky-sim (127.0.0.1's libfranka
+ports) share one worker. The longest modules start first so that neither worker is left with a long tail.
 Tests marked ``timing`` (1 kHz loops between processes, judged by the wall clock) are not run
 beside anything: ``make test`` runs them serially after the rest.
 """
@@ -23,8 +22,9 @@ if _WORKER.startswith("gw"):
     _n = int(_WORKER[2:])
     os.environ["NF_DOMAIN_IDS"] = f"{1 + 100 * _n}-{99 + 100 * _n}"
 
-# modules that start franky-sim (fixed ports on 127.0.0.1) or network namespaces: one worker for all
-_ONE_MACHINE = ("test_franka_", "test_robot_run", "test_thread_priority", "test_two_hosts")
+# modules that start franky-sim (fixed ports on 127.0.0.1): one worker for all; the network-namespace
+# tests (their own loopbacks, no franky-sim) form another unit, free to run beside them
+_ONE_MACHINE = ("test_franka_", "test_robot_run", "test_thread_priority")
 # the longest modules (seconds each, serial), started first
 _FIRST = ("test_stability", "test_learning_over_ros", "test_franka_ros", "test_many_arms", "test_bags",
           "test_franka_gear")

@@ -124,10 +124,10 @@ def test_stack_holds_without_a_policy_then_follows_one(tmp_path):
             with deploy:
                 assert probe.spin_until(lambda: statuses[-1][1].policy_version == 8, 30), deploy.log() + stack.log()
                 ticks_at_policy = robot_ticks()
-                assert probe.spin_until(lambda: robot_ticks() > ticks_at_policy + 4000, 300), stack.log()
+                assert probe.spin_until(lambda: robot_ticks() > ticks_at_policy + 3000, 300), stack.log()
                 assert error() < 0.01, f"{error() * 1e3:.1f} mm from the deployed goal\n{stack.log()}"
             assert "its law: force bound 60 N" in stack.log()
-            print(f"deploy_policy: {error() * 1e3:.2f} mm from its goal after 4 s of robot time")
+            print(f"deploy_policy: {error() * 1e3:.2f} mm from its goal after 3 s of robot time")
         assert stack.proc.returncode == 0, stack.log()
     finally:
         probe.close()

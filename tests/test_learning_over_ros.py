@@ -38,9 +38,11 @@ CONFIG = str(REPO / "config" / "gear.yaml")
 SHORT = {"episode_seconds": 0.5, "rollouts_per_iter": 3, "eval_episodes": 0}
 
 
-def stack(domain: int, tmp: Path, idle_mode: str, composed: bool = True, config: str = CONFIG) -> list[RosProcess]:
+def stack(domain: int, tmp: Path, idle_mode: str, composed: bool = True, config: str = CONFIG,
+          extra: tuple[str, ...] = ()) -> list[RosProcess]:
     """The arm and its controller: one composed process, or the sim and the controller apart."""
-    ctl_args = ["-p", f"nf_controller:idle_mode:={idle_mode}", "-p", "nf_controller:max_consecutive_misses:=0"]
+    ctl_args = ["-p", f"nf_controller:idle_mode:={idle_mode}", "-p", "nf_controller:max_consecutive_misses:=0",
+                *extra]
     if composed:
         return [RosProcess(["-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", config, *ctl_args],
                            domain, tmp / "composed.log")]
@@ -103,11 +105,12 @@ def test_two_ppo_iterations_over_ros_equal_the_in_process_trainer(tmp_path, comp
     assert_same_learning(over_ros, in_process_history(2, SHORT))
 
 
-def learn_over_composed(tmp_path: Path, config: str, settings: dict) -> tuple[list[dict], str]:
-    """Two learner iterations against the composed arm, both started with ``config``: the learner's
-    metrics rows (none with a dropped episode) and the arm's log."""
+def learn_over_composed(tmp_path: Path, config: str, settings: dict, arm_args: tuple[str, ...] = ()
+                        ) -> tuple[list[dict], str]:
+    """Two learner iterations against the composed arm, both started with ``config`` (the arm also with
+    ``arm_args``): the learner's metrics rows (none with a dropped episode) and the arm's log."""
     domain = allocate_domain_id()
-    arm = stack(domain, tmp_path, "pause", config=config)
+    arm = stack(domain, tmp_path, "pause", config=config, extra=arm_args)
     try:
         lrn = learner(domain, tmp_path / "run", tmp_path / "learner.log", 2, settings, config)
         assert wait_exit(lrn, 300) == 0, lrn.log() + logs(arm)
@@ -129,10 +132,13 @@ def test_peg_over_the_composed_stack_equals_the_in_process_trainer(tmp_path):
 
 def test_parameter_exploration_over_ros_equals_the_in_process_trainer(tmp_path):
     """make run's default task: learned S, D explored in parameter space, one published policy
-    version per rollout, each rollout a deterministic controller."""
+    version per rollout, each rollout a deterministic controller. The policy carries its law: the arm's
+    controller, given another force bound of its own (as an old hardware file would), warns that the
+    parameter is ignored and runs the policy's 60 N, so the learning still equals the in-process run."""
     config = str(REPO / "config" / "gear_learn.yaml")
     settings = {**SHORT, "rollouts_per_iter": 4}
-    over_ros, arm_log = learn_over_composed(tmp_path, config, settings)
+    over_ros, arm_log = learn_over_composed(tmp_path, config, settings,
+                                            ("-p", "nf_controller:potential_force_bound:=30.0"))
     in_process = in_process_history(2, settings, config)
     # Iteration 1 runs the same parameter draws: equal. The controller's episode core sums some
     # terms in another order than the in-process rollout (returns differ by ~1e-13), and the
@@ -142,26 +148,6 @@ def test_parameter_exploration_over_ros_equals_the_in_process_trainer(tmp_path):
     assert_same_learning(over_ros[:1], in_process[:1])
     assert over_ros[1]["return_mean"] == pytest.approx(in_process[1]["return_mean"], rel=1e-4)
     assert "policy version 1001 installed" in arm_log and "policy version 2000 installed" in arm_log
-    # the policy carries its law: the arm's controller runs the task file's 60 N bound it came with
-    assert "its law: force bound 60 N" in arm_log
-
-
-def test_a_controller_configured_with_another_law_runs_the_policys_and_says_so(tmp_path):
-    """The law travels with the policy: a controller given its own potential_force_bound (as an old
-    hardware file would) warns that the parameter is ignored, and runs the bound the learner's policy
-    carries (60 N from gear_learn.yaml), not its own."""
-    domain = allocate_domain_id()
-    config = str(REPO / "config" / "gear_learn.yaml")
-    arm = [RosProcess(["-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", config, "-p",
-                       "nf_controller:idle_mode:=pause", "-p", "nf_controller:potential_force_bound:=30.0"],
-                      domain, tmp_path / "composed.log")]
-    try:
-        lrn = learner(domain, tmp_path / "run", tmp_path / "learner.log", 1,
-                      {"episode_seconds": 0.2, "rollouts_per_iter": 2, "eval_episodes": 0}, config)
-        assert wait_exit(lrn, 240) == 0, lrn.log() + logs(arm)
-    finally:
-        stop(arm)
-    arm_log = logs(arm)
     assert ("parameter(s) potential_force_bound ignored: the law travels with the policy" in arm_log
             and "the policy's values win" in arm_log), arm_log
     assert "its law: force bound 60 N (0: off), k_rot 30 Nm/rad" in arm_log, arm_log

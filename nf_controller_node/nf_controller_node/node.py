@@ -44,7 +44,7 @@ from std_srvs.srv import Trigger
 from nf_core import qos
 from nf_core.episode import Chunk, EpisodeRun, EpisodeSpec, check_goal_duration
 from nf_core.panda_spec import HELD_PART_NAMES, held_part_by_name
-from nf_core.policy_params import PolicyParameterError, PolicyParameters
+from nf_core.policy_params import PolicyLaw, PolicyParameterError, PolicyParameters
 from nf_core.reward import DEFAULT_WEIGHTS
 from nf_core.ros_runtime import declare_read_only, run_node
 from nf_core.topics import (
@@ -202,6 +202,7 @@ class NFControllerNode(Node):
             if p["state_timeout"] > 0.0:
                 self.create_timer(max(p["state_timeout"] / 4.0, 0.001), self._on_watchdog)
         self._weights = DEFAULT_WEIGHTS
+        self._logged_law: PolicyLaw | None = None  # the law last logged with an installed policy
         self._episode_ids = itertools.count(int(time.time() * 1000) * 1000)  # unique across restarts
         self._episode_run: EpisodeRun | None = None
         self._goal = None
@@ -550,8 +551,8 @@ class NFControllerNode(Node):
         future = self._on_driver_thread(lambda: loop.set_policy(params, evaluator))
         a = params.arch
         what = f"n_flow={a.n_flow}, n_hidden={a.n_hidden}, {a.activation}, x_ref={params.x_ref.tolist()}"
-        if loop.policy is None or loop.policy.law != params.law:
-            law = params.law
+        law = params.law
+        if law != self._logged_law:  # each law once, with the first policy installed under it
             what += (f"; its law: force bound {law.potential_force_bound:g} N (0: off), k_rot {law.k_rot:g} Nm/rad, "
                      f"d_rot {law.d_rot:g} Nm s/rad, joint damping {law.joint_damping:g} Nm s/rad, "
                      f"stiffness floor {law.stiffness_floor:g} N/m, held part {law.held_part}")
@@ -563,6 +564,7 @@ class NFControllerNode(Node):
                 loop.policy_rejections += 1
                 self.get_logger().error(f"rejected policy parameters version {params.version}: {exc}")
                 return
+            self._logged_law = law
             self.get_logger().info(f"policy version {params.version} "
                                    f"{'installed' if now else 'queued until the episode ends'}: {what}")
 
