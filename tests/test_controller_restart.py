@@ -1,5 +1,7 @@
 """A standalone controller restarted under a running driver ramps from the torque the arm is
-applying (the driver's ``effort``), within the torque rate limit from its first command on."""
+applying (the driver's ``effort``), within the torque rate limit from its first command on, under both
+effort conventions: the command the driver applies (our simulator's) and the joint torque the arm
+measures, gravity included (franka_ros2's, libfranka's tau_J)."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ import signal
 import time
 
 import numpy as np
+import pytest
 from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -27,7 +30,8 @@ CONTROLLER = ["-m", "nf_controller_node.node", "--ros-args", "-p", "gravity_comp
               "-p", "reset_service:=''", "-p", "state_timeout:=2.0", "-p", "max_consecutive_misses:=500"]
 
 
-def test_restarted_controller_starts_from_the_applied_torque(tmp_path):
+@pytest.mark.parametrize("effort", ["command", "measured"])
+def test_restarted_controller_starts_from_the_applied_torque(tmp_path, effort):
     domain = allocate_domain_id()
     probe = Probe(domain)
     joints = JointMap(panda_spec.JOINT_NAMES)
@@ -41,8 +45,10 @@ def test_restarted_controller_starts_from_the_applied_torque(tmp_path):
     commands = probe.collect(Float64MultiArray, "effort_controller/commands", EVERY,
                              convert=lambda m: np.array(m.data))
     watch = probe.node.create_subscription(Float64MultiArray, "effort_controller/commands", lambda m: None, EVERY)
-    driver = RosProcess([str(REPO / "tests" / "peers" / "hw_driver.py")], domain, tmp_path / "driver.log")
-    first = RosProcess([*CONTROLLER, "-p", "idle_mode:=policy"], domain, tmp_path / "first.log")
+    driver = RosProcess([str(REPO / "tests" / "peers" / "hw_driver.py"), "--effort", effort], domain,
+                        tmp_path / "driver.log")
+    controller = [*CONTROLLER, "-p", f"driver_effort:={effort}"]
+    first = RosProcess([*controller, "-p", "idle_mode:=policy"], domain, tmp_path / "first.log")
     second = None
     try:
         assert probe.spin_until(lambda: len(states) > 100, 30), driver.log()
@@ -60,14 +66,19 @@ def test_restarted_controller_starts_from_the_applied_torque(tmp_path):
         killed = time.monotonic()
         # what the driver applies now (the dead controller's last command), from a state stamped after the kill
         assert probe.spin_until(lambda: states[-1][1][3] > killed_wall + 0.1, 30), "no joint state after the kill"
-        held = states[-1][1][2]
-        assert np.abs(held).max() > 2.0, f"the driver applies only {held}: nothing to ramp from"
+        held = states[-1][1][2]  # the effort the driver reports for it
+        last = commands[-1][1]  # the dead controller's last command: what the driver applies on top of gravity
+        assert np.abs(last).max() > 2.0, f"the driver applies only {last}: nothing to ramp from"
+        if effort == "command":
+            np.testing.assert_allclose(held, last, atol=1e-9)
+        else:  # the reported torque holds the gravity the driver adds: taken as a command it would step by it
+            assert np.abs(held - last).max() > 5.0, f"effort {held} vs command {last}: no gravity in it?"
         # A reader sees only what a writer sends after they matched, and discovery can take seconds on
         # loaded cores: with the driver paused (no states, so no commands) until the probe has matched
         # the new controller's publisher, the probe sees its first command
         driver.proc.send_signal(signal.SIGSTOP)
         matched_before = watch.get_publisher_count()  # the dead controller's may still be counted
-        second = RosProcess([*CONTROLLER, "-p", "idle_mode:=hold"], domain, tmp_path / "second.log")
+        second = RosProcess([*controller, "-p", "idle_mode:=hold"], domain, tmp_path / "second.log")
         try:
             assert probe.spin_until(lambda: watch.get_publisher_count() > matched_before, 60), second.log()
             probe.spin_for(0.2)
@@ -76,7 +87,7 @@ def test_restarted_controller_starts_from_the_applied_torque(tmp_path):
         assert probe.spin_until(lambda: commands and commands[-1][0] > killed + 0.2, 60), second.log()
         assert probe.spin_until(lambda: sum(t > killed for t, _ in commands[-200:]) >= 200, 30), second.log()
         new = [c for t, c in commands if t > killed]  # the second controller's, from its first on
-        applied = held  # the driver's command changes only when a command arrives: none came since the kill
+        applied = last  # the driver's command changes only when a command arrives: none came since the kill
         step = np.abs(new[0] - applied)
         assert step.max() <= MAX_STEP + 1e-6, (f"first command {np.round(new[0], 3)} steps {np.round(step, 3)} Nm "
                                                f"from the applied {np.round(applied, 3)}\n{second.log()}")

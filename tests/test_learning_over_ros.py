@@ -330,7 +330,8 @@ def test_controller_unchanged_against_a_hardware_like_driver(tmp_path):
     # the rest of the test. Latching on stale states and on runs of misses is tested in
     # test_nodes_core.
     ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "-p", "gravity_compensation:=false",
-                      "-p", "reset_service:=''", "-p", "idle_mode:=policy", "-p", "state_timeout:=2.0",
+                      "-p", "driver_effort:=command", "-p", "reset_service:=''", "-p", "idle_mode:=policy",
+                      "-p", "state_timeout:=2.0",
                       "-p", "max_consecutive_misses:=500"],
                      domain, tmp_path / "controller.log")
 

@@ -41,6 +41,7 @@ TIMED = pytest.mark.timing
 
 SIM = ["-m", "sim_bridge_node.node", "--ros-args", "-p", "task:=free"]
 CONTROLLER = ["-m", "nf_controller_node.node", "--ros-args", "-p", "idle_mode:=policy"]  # no episodes here
+Q0 = [0.0, -0.121374, 0.0, -2.258102, 0.0, 2.136727, 0.785398]  # rad, a Panda start pose
 GOAL_OFFSET = np.array([0.05, 0.0, -0.10])  # m, x_ref relative to the start TCP position
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 SAMPLED = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)  # for high-rate topics
@@ -214,6 +215,41 @@ def test_controller_holds_on_bad_joint_states(probe_and_domain, tmp_path: Path):
           f"by the stamps")
 
 
+def test_no_command_before_the_drivers_reader_has_matched(probe_and_domain, tmp_path: Path):
+    """A command sent before the driver's reader matched is lost, and the driver would jump from its old
+    command to a later one: the controller answers no state until a reader of its commands is there,
+    counts the states it left, and then commands (the first from the applied torque, as always)."""
+    probe, domain = probe_and_domain
+    diags = probe.collect(DiagnosticArray, "/diagnostics", RELIABLE, lambda m: diag_values(m, "nf_controller"))
+    pub = probe.node.create_publisher(JointState, "joint_states", qos.STATE)
+    names = [f"panda_joint{i}" for i in range(1, 8)]
+    stamp = [10**9]
+
+    def send() -> None:
+        stamp[0] += 10_000_000
+        msg = JointState(name=names, position=Q0, velocity=[0.0] * 7, effort=[0.0] * 7)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp[0], 10**9)
+        pub.publish(msg)
+
+    with RosProcess([*CONTROLLER, "-p", "diagnostics_period:=0.2"], domain, tmp_path / "controller.log") as ctl:
+        assert probe.spin_until(lambda: pub.get_subscription_count() > 0 and diags, 20.0), ctl.log()
+        for _ in range(100):  # 1 s of states at 100 Hz, nobody reading the commands
+            send()
+            probe.spin_for(0.01)
+        probe.spin_for(0.5)
+        last = diags[-1][1]
+        assert last["reader_matched"] == "False" and int(last["steps"]) == 0, last
+        assert int(last["states_before_reader"]) >= 90, last  # a few may be overwritten (keep-last)
+        commands = probe.collect(Float64MultiArray, "/effort_controller/commands")
+        assert probe.spin_until(lambda: (send(), commands)[1], 20.0), ctl.log()
+        probe.spin_for(0.5)
+        log = ctl.log()
+    last = diags[-1][1]
+    assert last["reader_matched"] == "True" and int(last["steps"]) >= 1, last
+    assert "no reader of effort_controller/commands has matched yet" in log, log
+    assert "matched: commanding from now on" in log, log
+
+
 def test_controller_counts_the_joint_states_its_reader_overwrote(probe_and_domain, tmp_path: Path):
     """States sent in bursts of 200 (1 ms stamps, as fast as Python publishes) overrun the controller's
     keep-last reader of depth 10: DDS drops the older ones without a word. Every dropped state is
@@ -221,7 +257,7 @@ def test_controller_counts_the_joint_states_its_reader_overwrote(probe_and_domai
     probe, domain = probe_and_domain
     diags = probe.collect(DiagnosticArray, "/diagnostics", RELIABLE, lambda m: diag_values(m, "nf_controller"))
     pub = probe.node.create_publisher(JointState, "joint_states", qos.STATE)
-    q0 = [0.0, -0.121374, 0.0, -2.258102, 0.0, 2.136727, 0.785398]
+    q0 = Q0
     names = [f"panda_joint{i}" for i in range(1, 8)]
     commands = probe.collect(Float64MultiArray, "/effort_controller/commands")
 
@@ -230,8 +266,11 @@ def test_controller_counts_the_joint_states_its_reader_overwrote(probe_and_domai
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
         pub.publish(msg)
 
+    watch = probe.node.create_subscription(Float64MultiArray, "/effort_controller/commands", lambda m: None, 10)
     with RosProcess([*CONTROLLER, "-p", "diagnostics_period:=0.2"], domain, tmp_path / "controller.log") as ctl:
-        assert probe.spin_until(lambda: pub.get_subscription_count() > 0 and diags, 20.0), ctl.log()
+        # both ways matched: the controller answers no state before its command reader is there
+        assert probe.spin_until(lambda: pub.get_subscription_count() > 0 and watch.get_publisher_count() > 0
+                                and diags and diags[-1][1]["reader_matched"] == "True", 20.0), ctl.log()
         # the first state must arrive: the stamps cannot tell what was lost before the first one
         sent, stamp = 1, 10**9
         send(stamp)
@@ -267,7 +306,8 @@ def test_realtime_sim_holds_arm_when_controller_is_killed(probe_and_domain, tmp_
     diags = probe.collect(DiagnosticArray, "/diagnostics", RELIABLE, lambda m: diag_values(m, "sim_bridge"))
     sim_args = [*SIM, "-p", "mode:=realtime", "-p", "driver_gravity_compensation:=true"]
     with RosProcess(sim_args, domain, tmp_path / "sim.log") as sim:
-        ctl = RosProcess([*CONTROLLER, "-p", "gravity_compensation:=false"], domain, tmp_path / "controller.log")
+        ctl = RosProcess([*CONTROLLER, "-p", "gravity_compensation:=false", "-p", "driver_effort:=command"], domain,
+                         tmp_path / "controller.log")
         try:
             logs = lambda: f"sim:\n{sim.log()}\ncontroller:\n{ctl.log()}"  # noqa: E731
             assert probe.spin_until(lambda: len(tasks) > 0, 20.0), logs()

@@ -21,6 +21,7 @@ from nf_controller_node.control_loop import (
     LatencyStats,
     LoopConfig,
 )
+from nf_controller_node.torque_law import TorqueLawConfig
 from nf_core.flow_spec import FlowArchitecture
 from nf_core.panda_spec import JOINT_NAMES, TORQUE_LIMITS
 from nf_core.policy_params import PolicyParameterError, PolicyParameters
@@ -420,6 +421,18 @@ def test_loop_rate_limit_starts_from_the_applied_torque(arm):
     step = loop.controller.law.max_step
     assert np.all(np.abs(tau - applied) <= step + 1e-9), tau  # the first command ramps from the arm's torque
     assert loop.start_from_applied(NAMES, applied.tolist()) == "the controller has commanded already"
+
+
+def test_a_measured_effort_with_gravity_seeds_the_command_part(arm):
+    """franka_ros2's effort is the measured joint torque, gravity included; when the driver adds gravity
+    (gravity_compensation false) the controller seeds its rate limit from that torque less g(q)."""
+    loop = ControlLoop(arm, TorqueLawConfig(gravity_compensation=False))
+    assert loop.set_policy(_params(arm))
+    command = np.array([5.0, -20.0, 3.0, 10.0, 1.0, -2.0, 0.5])
+    g = arm.gravity(np.asarray(Q0, dtype=float)).copy()
+    assert np.abs(g).max() > 5.0  # the gravity a wrong reading would step by
+    assert loop.start_from_applied(NAMES, (command + g).tolist(), list(Q0)) == ""
+    np.testing.assert_allclose(loop.controller.tau_prev, command, atol=1e-9)
 
 
 @pytest.mark.parametrize("effort, why", [([], "no effort"), ([1.0] * 6, "not usable"),

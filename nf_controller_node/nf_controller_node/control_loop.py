@@ -410,18 +410,27 @@ class ControlLoop:
         self.task_success = bool(success)
         return ""
 
-    def start_from_applied(self, names: Sequence[str], effort: Sequence[float]) -> str:
+    def start_from_applied(self, names: Sequence[str], effort: Sequence[float],
+                           position: Sequence[float] | None = None) -> str:
         """Start the torque rate limit from the torque the arm is applying (``effort`` of the driver's
         first joint state, Nm, in the state's name order), not from nothing: a controller restarted
-        under a running driver then ramps from the command the arm still holds. Only before the
-        first command; an effort that is missing, of the wrong size, not finite or beyond the torque
-        limits is not used (the reason is returned; "" when used)."""
+        under a running driver then ramps from the command the arm still holds. ``position`` (rad, the
+        same state's): the effort is the joint torque the arm measures, gravity included (franka_ros2,
+        libfranka's tau_J); when the driver adds gravity itself, g(q) is taken off, leaving the command's
+        part. None: the effort is the command the driver applies, without the gravity it adds (our
+        simulator). Only before the first command; an effort that is missing, of the wrong size, not
+        finite or beyond the torque limits is not used (the reason is returned; "" when used)."""
         if self.steps:
             return "the controller has commanded already"
         if len(effort) == 0:
             return "the driver reports no effort"
         try:
             tau, _ = self.joints.map(names, effort, effort)
+            if position is not None and not self.controller.law.gravity_compensation:
+                q, _ = self.joints.map(names, position, position)
+                if not np.all(np.isfinite(q)):
+                    return "position not finite: the gravity in the effort cannot be taken off"
+                tau = tau - self.controller.arm.gravity(q)
         except JointStateError as exc:
             return f"effort not usable: {exc}"
         limits = self.controller.law.torque_limits

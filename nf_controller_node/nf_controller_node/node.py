@@ -69,6 +69,9 @@ from .torque_law import TorqueLawConfig
 _LAW = TorqueLawConfig()
 PARAMETERS = {
     "gravity_compensation": (True, "add g(q) to the torque; false when the driver compensates gravity (Franka)"),
+    "driver_effort": ("measured", "what joint_states' effort is: measured (the joint torque, gravity included: "
+                      "franka_ros2, libfranka tau_J) | command (the command applied, without the gravity the driver "
+                      "adds: sim_bridge); a restarted controller ramps from its command part"),
     "held_part": ("gear", f"mass model and TCP of the part in the hand: {' | '.join(HELD_PART_NAMES)}"),
     "hold_damping": (_LAW.hold_damping, "joint damping of the safe hold, Nm s/rad"),
     "hold_stiffness": (_LAW.hold_stiffness, "Nm/rad of the safe hold's joint spring to where the hold began "
@@ -92,6 +95,7 @@ PARAMETERS = {
     "reset_timeout": (60.0, "composed: s the driver may take to reset the world (a robot moves there)"),
     "diagnostics_period": (1.0, "s between /diagnostics messages"),
 }
+DRIVER_EFFORTS = ("measured", "command")
 # The law's settings that travel with the policy (nf_msgs/PolicyParameters): set here, they are ignored
 POLICY_LAW_PARAMETERS = ("potential_force_bound", "k_rot", "d_rot", "joint_damping", "stiffness_floor")
 _MODE_NAMES = {MODE_IDLE: "idle", MODE_RUNNING: "running", MODE_SAFE_HOLD: "safe_hold", MODE_RESETTING: "resetting"}
@@ -123,6 +127,8 @@ def _goal_problem(goal: RunEpisode.Goal) -> str:
 
 def _loop_from(p: dict, arm: ArmModel | None = None, joint_names: Sequence[str] | None = None) -> ControlLoop:
     part = held_part_by_name(p["held_part"])  # ValueError names the choices
+    if p["driver_effort"] not in DRIVER_EFFORTS:
+        raise ValueError(f"driver_effort must be one of {DRIVER_EFFORTS}, got {p['driver_effort']!r}")
     for name in ("status_rate", "diagnostics_period"):
         if not p[name] > 0.0:
             raise ValueError(f"{name} must be > 0, got {p[name]}")
@@ -196,6 +202,8 @@ class NFControllerNode(Node):
             # what the keep-last reader overwrote (or the driver skipped): counted from the stamps
             self._gaps = StampGaps(p["control_period"])
             self._gaps_reported = 0
+            self._reader_matched = False  # the driver's command reader (see _driver_listens)
+            self._states_before_reader = 0
             self.create_subscription(TaskStatus, TASK_STATUS, self._on_task_status, state_qos)
             if p["reset_service"]:
                 self._reset_client = self.create_client(ResetSim, p["reset_service"])
@@ -245,11 +253,18 @@ class NFControllerNode(Node):
         stamp = msg.header.stamp
         stamp_ns = stamp.sec * 1_000_000_000 + stamp.nanosec
         self._gaps.observe(stamp_ns)
+        if not self._reader_matched and not self._driver_listens():
+            self._states_before_reader += 1
+            if self._states_before_reader == 1:
+                self.get_logger().warning(f"joint states arrive but no reader of {COMMANDS} has matched yet: "
+                                          "no command until the driver listens")
+            return  # a command now would be lost, and the driver would jump from its old one to a later one
         host, loop = self.host, self.loop
         host.service()
         if not loop.steps and not self._rate_start_checked:
             self._rate_start_checked = True  # once: the first state after start-up
-            why = loop.start_from_applied(msg.name, msg.effort)
+            measured = self.params["driver_effort"] == "measured"
+            why = loop.start_from_applied(msg.name, msg.effort, msg.position if measured else None)
             self.get_logger().info("torque rate limit starts from the applied torque the driver reports"
                                    if not why else f"torque rate limit starts unprimed: {why}")
         if not loop.answers(stamp_ns):
@@ -259,6 +274,16 @@ class NFControllerNode(Node):
         self._dim.label = stamp_label(stamp_ns)  # lockstep handshake
         self._publish_command(tau)
         self._drain()
+
+    def _driver_listens(self) -> bool:
+        """Whether the driver's command reader has matched this node's publisher (looked at until it has,
+        on every state and every diagnostics period)."""
+        if self._cmd_pub.get_subscription_count() == 0:
+            return False
+        self._reader_matched = True
+        self.get_logger().info(f"the driver's reader of {COMMANDS} matched: commanding from now on "
+                               f"({self._states_before_reader} joint state(s) left unanswered before)")
+        return True
 
     def _release_states(self) -> None:
         """End a reset: answer states again, first the one that came in meanwhile. Without this
@@ -647,8 +672,11 @@ class NFControllerNode(Node):
             "policy_rejections": loop.policy_rejections, "task_status_rejected": loop.bad_task_status,
         }
         if not self.composed:  # the composed driver accounts for its own ticks
+            if not self._reader_matched:
+                self._driver_listens()
             values.update(states_missing=self._gaps.missing, stamp_gaps=self._gaps.gaps,
-                          stamp_jumps=self._gaps.jumps)
+                          stamp_jumps=self._gaps.jumps, reader_matched=self._reader_matched,
+                          states_before_reader=self._states_before_reader)
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()

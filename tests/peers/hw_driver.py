@@ -1,10 +1,11 @@
 """A minimal "hardware-like" arm driver for tests: a MuJoCo Panda stepped by a 1 kHz wall-clock
 timer that speaks only the two ros2_control topics (``joint_states`` out, joint names in a
 different order than the controller's; ``effort_controller/commands`` in) and adds gravity
-itself, as Franka's driver does; ``effort`` reports the command it applies. No reset service, no
-task status, no stamp handshake.
+itself, as Franka's driver does. ``effort`` reports the command it applies (default) or, with
+``--effort measured``, the joint torque the arm applies, gravity included (franka_ros2's convention:
+libfranka's tau_J). No reset service, no task status, no stamp handshake.
 
-Run: python tests/peers/hw_driver.py   (stops on SIGINT)
+Run: python tests/peers/hw_driver.py [--effort command|measured]   (stops on SIGINT)
 """
 
 from __future__ import annotations
@@ -29,8 +30,9 @@ ORDER = [6, 0, 5, 1, 4, 2, 3]  # published joint order (a permutation of panda_j
 
 
 class HardwareLikeDriver(Node):
-    def __init__(self) -> None:
+    def __init__(self, measured: bool = False) -> None:
         super().__init__("hw_driver")
+        self.measured = measured  # effort = command + gravity (franka_ros2) instead of the command
         self.env = InsertionEnv("free")
         self.env.reset()
         self.names = [self.env.scene.joint_names[i] for i in ORDER]
@@ -56,7 +58,9 @@ class HardwareLikeDriver(Node):
         msg.name = self.names
         msg.position = env.q[ORDER].tolist()
         msg.velocity = env.dq[ORDER].tolist()
-        msg.effort = self.command[ORDER].tolist()  # the command it applies (its own gravity not included)
+        # measured: the joint torque at the state it reports, the gravity of that q included (tau_J)
+        effort = self.command + self._gravity() if self.measured else self.command
+        msg.effort = effort[ORDER].tolist()
         self.pub.publish(msg)
 
     def _gravity(self) -> np.ndarray:
@@ -68,11 +72,16 @@ class HardwareLikeDriver(Node):
 
 
 def main() -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--effort", choices=("command", "measured"), default="command")
+    args, _ = ap.parse_known_args()
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-    node = HardwareLikeDriver()
+    node = HardwareLikeDriver(measured=args.effort == "measured")
     ex = EventsExecutor()
     ex.add_node(node)
     while not stop.is_set():
