@@ -88,6 +88,9 @@ def test_stack_runs_an_iteration_and_leaves_a_complete_run_folder(tmp_path):
     assert (run / "final_policy.gif").stat().st_size > 10_000
     summary = (run / "summary.md").read_text()
     assert "| 1 |" in summary and "Bag `bag/` (closed" in summary
+    # what was lost, refused or recovered, as the nodes last reported it: nothing in a clean run
+    assert "nf_controller: control loop: deadline_misses" in summary and "faults 0, bad_inputs 0" in summary, summary
+    assert "sim_bridge: driver: command_timeouts 0, bad_commands 0" in summary, summary
     # the prior evaluated on the same held-out start as the learned controller, both in the summary
     prior = json.loads((run / "learner" / "evaluation_prior.json").read_text())
     final = json.loads((run / "learner" / "evaluation.json").read_text())

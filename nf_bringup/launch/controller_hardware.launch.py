@@ -17,5 +17,5 @@ def generate_launch_description() -> LaunchDescription:
         Node(package="nf_controller_node", executable="nf_controller", name="nf_controller", output="screen",
              parameters=[LaunchConfiguration("config"), {
                  "gravity_compensation": False, "state_timeout": 0.02, "reset_service": "",
-                 "idle_mode": "hold"}]),
+                 "idle_mode": "hold", "driver_effort": "measured"}]),
     ])

@@ -46,7 +46,13 @@ def write_summary(run_dir: Path, config: Path, wall: float, exit_code: int | Non
             lines.append(f"| {label} | {e['episodes']} | {e['success_rate']:.2f} | "
                          f"{e['final_distance_mean']:.4f} | {e['return_mean']:.1f} |")
         lines.append("")
+    if metrics:
+        lines += ["Torque (Nm) is the mean over the episode of |tau| beyond gravity: what the controller adds to "
+                  "the arm's gravity compensation (on a Franka, the robot adds gravity: the whole command). It grows "
+                  "with the distance the episode starts from the goal, up to the potential's force bound "
+                  "(docs/hardware.md, \"Torque figures\").", ""]
     lines += bag_lines(run_dir / "bag")
+    lines += health_lines(run_dir / "bag")
     files = sorted(p.relative_to(run_dir) for p in run_dir.rglob("*") if p.is_file())
     shown = [f for f in files if not str(f).startswith(("logs/", "bag/"))]
     lines += ["Files:", ""] + [f"- `{f}`" for f in shown] \
@@ -136,6 +142,41 @@ def bag_lines(bag: Path) -> list[str]:
     size = sum(f.stat().st_size for f in bag.glob("*.mcap")) / 1e6
     return [f"Bag `{bag.name}/` ({state}, {size:.1f} MB): {sum(health.counts.values())} messages: {counts}. "
             f"Inspect with `python -m nf_bags.info {bag}`.", ""]
+
+
+# the last /diagnostics values the summary reports, per status: what was lost, refused or recovered
+HEALTH_KEYS = {
+    "control loop": ("deadline_misses", "faults", "bad_inputs", "policy_rejections", "states_missing",
+                     "stamp_gaps", "states_before_reader"),
+    "franka_driver: robot": ("exceptions", "recoveries", "late_ticks", "missed_cycles", "resets_done",
+                             "resets_failed"),
+    "sim_bridge: driver": ("command_timeouts", "bad_commands", "stale_commands"),
+}
+
+
+def health_lines(bag: Path) -> list[str]:
+    """Lines for ``summary.md``: the counters of loss and faults the nodes last reported on /diagnostics
+    (a status name ending in a ``HEALTH_KEYS`` key), as the bag holds them; nothing without a bag."""
+    if not bag.exists():
+        return []
+    try:
+        from nf_bags.reader import read_messages
+
+        last: dict[str, dict[str, str]] = {}
+        for d in read_messages(bag, ["/diagnostics"]):
+            for status in d.msg.status:
+                kind = next((k for k in HEALTH_KEYS if str(status.name).endswith(k)), None)
+                if kind is not None:
+                    values = {kv.key: kv.value for kv in status.values}
+                    last[str(status.name)] = {k: values[k] for k in HEALTH_KEYS[kind] if k in values}
+    except Exception as exc:  # a broken bag must not hide the run's results
+        return [f"/diagnostics could not be read from the bag: {exc}", ""]
+    if not last:
+        return ["The bag holds no /diagnostics of the stack's nodes.", ""]
+    lines = ["Last reported on /diagnostics (counts since each node started):", ""]
+    for name, values in sorted(last.items()):
+        lines.append(f"- {name}: " + ", ".join(f"{k} {v}" for k, v in values.items()))
+    return lines + [""]
 
 
 def final_video(run_dir: Path) -> Path | None:
