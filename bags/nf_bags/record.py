@@ -195,7 +195,9 @@ class RecorderNode(Node):
             rec.reliable, rec.latched = want_reliable, all_latched
             rec.main = self.create_subscription(rec.cls, topic, self._on_message(topic, rec, False),
                                                 self._sub_qos(rec.reliable, rec.latched), raw=True)
-            rec.main_dedup_until = 0.0 if first else now + DEDUP_SECONDS
+            # only a transient-local reader is sent history: a volatile one gets live messages alone, and
+            # a live message equal to a recorded one (a lockstep resend) must not be taken for history
+            rec.main_dedup_until = 0.0 if first or not rec.latched else now + DEDUP_SECONDS
             rec.replayed = Counter(rec.recent)  # each recorded message can come again once, as history
             if old is not None:
                 self.destroy_subscription(old)
