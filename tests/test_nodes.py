@@ -440,6 +440,7 @@ def test_composed_stack_monitor_always_publishes_to_nobody(probe_and_domain, tmp
     (["-m", "nf_bringup.sim_stack", "--ros-args", "-p", "sim_bridge:task:=free", "-p", "sim_bridge:mode:=realtime",
       "-p", "sim_bridge:rt_priority:=150"], "rt_priority must be -1"),
     ([*CONTROLLER, "-p", "held_part:=anvil"], "held_part must be"),
+    ([*CONTROLLER, "-p", "driver_effort:=guess"], "driver_effort must be one of"),
     # a -p whose type differs from a node section of the parameters file: rcl keeps the file's value
     # without a word, the node says so
     ([*CONTROLLER, "--params-file", str(REPO / "tests" / "params_node_section.yaml"),
