@@ -1,7 +1,7 @@
 """Shared pytest setup: every ROS context in the test process stays on loopback, over UDP.
 
-``make test`` runs the suite on two pytest-xdist workers (most tests wait on other processes, so one
-worker leaves a core idle). Each worker gets its own range of ROS domain ids; a test module stays on
+``make test`` runs the suite on three pytest-xdist workers (most tests wait on other processes or on
+the wall clock, so even two workers leave the two cores partly idle). Each worker gets its own range of ROS domain ids; a test module stays on
 one worker (module fixtures are built once); the modules that start franky-sim (127.0.0.1's libfranka
 ports) share one worker. The longest modules start first so that neither worker is left with a long tail.
 Tests marked ``timing`` (1 kHz loops between processes, judged by the wall clock) are not run
@@ -19,8 +19,9 @@ isolate(os.environ, domain_id=None, sources=False)
 
 _WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")  # gw0, gw1, ... under xdist
 if _WORKER.startswith("gw"):
-    _n = int(_WORKER[2:])
-    os.environ["NF_DOMAIN_IDS"] = f"{1 + 100 * _n}-{99 + 100 * _n}"
+    # ROS domain ids 1..232 split into one disjoint range per worker
+    _n, _width = int(_WORKER[2:]), 232 // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "2"))
+    os.environ["NF_DOMAIN_IDS"] = f"{1 + _width * _n}-{_width * (_n + 1) - 1}"
 
 # modules that start franky-sim (fixed ports on 127.0.0.1): one worker for all; the network-namespace
 # tests (their own loopbacks, no franky-sim) form another unit, free to run beside them
