@@ -1,9 +1,10 @@
 """Shared pytest setup: every ROS context in the test process stays on loopback, over UDP.
 
 ``make test`` runs the suite on three pytest-xdist workers (most tests wait on other processes or on
-the wall clock, so even two workers leave the two cores partly idle). Each worker gets its own range of ROS domain ids; a test module stays on
-one worker (module fixtures are built once); the modules that start franky-sim (127.0.0.1's libfranka
-ports) share one worker. The longest modules start first so that neither worker is left with a long tail.
+the wall clock, so even two workers leave the two cores partly idle). Each worker gets its own range of
+ROS domain ids; a test module stays on one worker (module fixtures are built once); the modules that
+start franky-sim (127.0.0.1's libfranka ports) share one worker. The longest modules start first so
+that no worker is left with a long tail.
 Tests marked ``timing`` (1 kHz loops between processes, judged by the wall clock) are not run
 beside anything: ``make test`` runs them serially after the rest.
 """
