@@ -21,7 +21,9 @@ import torch
 from learner_node.config import TrainConfig
 from learner_node.trainer import EVAL_SEED_BASE, Trainer, make_evaluator
 from nf_core import panda_spec
-from sim_bridge_node import scenes
+from nf_core.task_spec import load_task
+
+TASK = load_task("gear_clamp")
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "gear_clamp.yaml"
 
@@ -29,10 +31,10 @@ CONFIG = Path(__file__).resolve().parents[1] / "config" / "gear_clamp.yaml"
 def gear_overlaps_clamp(tcp: np.ndarray) -> bool:
     """Whether the gear (bounding cylinder, TCP at its lower face) at TCP ``tcp`` overlaps the clamp box."""
     r, h = panda_spec.GEAR_OUTER_RADIUS, panda_spec.GEAR_DEPTH
-    lo = np.array([scenes.CLAMP_CENTER_X - scenes.CLAMP_HALF_THICKNESS, scenes.FIXTURE_XY[1] - scenes.CLAMP_HALF_LENGTH,
+    lo = np.array([TASK.clamp.center_x - TASK.clamp.half_thickness, TASK.top[:2][1] - TASK.clamp.half_length,
                    0.0])
-    hi = np.array([scenes.CLAMP_CENTER_X + scenes.CLAMP_HALF_THICKNESS,
-                   scenes.FIXTURE_XY[1] + scenes.CLAMP_HALF_LENGTH, scenes.CLAMP_TOP])
+    hi = np.array([TASK.clamp.center_x + TASK.clamp.half_thickness,
+                   TASK.top[:2][1] + TASK.clamp.half_length, TASK.clamp.top])
     # closest point of the box's xy rectangle to the gear axis, and the z ranges
     nearest = np.clip(tcp[:2], lo[:2], hi[:2])
     lateral = math.hypot(*(tcp[:2] - nearest)) < r
@@ -72,9 +74,9 @@ def main() -> None:
     trainer = Trainer(cfg)
     env = trainer.runner.env
     goal = env.goal_position
-    print(f"clamp: x {scenes.CLAMP_CENTER_X - scenes.CLAMP_HALF_THICKNESS:.3f}-"
-          f"{scenes.CLAMP_CENTER_X + scenes.CLAMP_HALF_THICKNESS:.3f} m, |y - {scenes.FIXTURE_XY[1]}| <= "
-          f"{scenes.CLAMP_HALF_LENGTH} m, z 0-{scenes.CLAMP_TOP} m; goal TCP {goal.round(3).tolist()}")
+    print(f"clamp: x {TASK.clamp.center_x - TASK.clamp.half_thickness:.3f}-"
+          f"{TASK.clamp.center_x + TASK.clamp.half_thickness:.3f} m, |y - {TASK.top[:2][1]}| <= "
+          f"{TASK.clamp.half_length} m, z 0-{TASK.clamp.top} m; goal TCP {goal.round(3).tolist()}")
     print("1. straight line start -> goal (gear's bounding cylinder), held-out starts:")
     seeds = [EVAL_SEED_BASE + k for k in range(10)]
     for seed in seeds:
@@ -104,7 +106,7 @@ def main() -> None:
         print(f"   {name:40s} S={s_diag} D={d_diag}: success {ok}/{len(res)}, highest rise above the start "
               f"{rise * 1e3:.1f} mm, max TCP z {max(r['z_max'] for r in res):.3f} m, "
               f"smallest x reached {min(r['x_min'] for r in res):.3f} m, over the clamp in "
-              f"{sum(r['x_min'] < scenes.CLAMP_CENTER_X - scenes.CLAMP_HALF_THICKNESS - 0.03 for r in res)}, "
+              f"{sum(r['x_min'] < TASK.clamp.center_x - TASK.clamp.half_thickness - 0.03 for r in res)}, "
               f"mean torque {np.mean([r['torque'] for r in res]):.1f} Nm")
 
 

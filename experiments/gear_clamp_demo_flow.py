@@ -40,6 +40,9 @@ from learner_node.config import TrainConfig
 from learner_node.flow_fit import demo_samples, fit_flow_to_demos, latent_cosines
 from learner_node.policy import NFPolicy
 from learner_node.trainer import EVAL_SEED_BASE, Trainer, make_evaluator
+from nf_core.task_spec import load_task
+
+TASK = load_task("gear_clamp")
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "gear_clamp.yaml"
 Z_OVER = 0.32  # m: TCP height of the carry over the clamp (its top: 0.20 m, the gear's rim: r = 3 cm)
@@ -123,7 +126,6 @@ def plot(path: Path, columns: list[tuple[str, NFPolicy, list]]) -> None:
     from matplotlib.colors import LogNorm
     from matplotlib.patches import Rectangle
 
-    from sim_bridge_node import scenes
 
     xs, zs = np.linspace(0.42, 0.78, 145), np.linspace(0.04, 0.36, 129)
     gx, gz = np.meshgrid(xs, zs)
@@ -137,11 +139,11 @@ def plot(path: Path, columns: list[tuple[str, NFPolicy, list]]) -> None:
                          norm=LogNorm())
         ax.contour(gx * 100, gz * 100, np.clip(v, levels[0], None), levels=levels, colors="k", linewidths=0.3,
                    alpha=0.5)
-        c0 = scenes.CLAMP_CENTER_X - scenes.CLAMP_HALF_THICKNESS
-        ax.add_patch(Rectangle((c0 * 100, 0), 2 * scenes.CLAMP_HALF_THICKNESS * 100, scenes.CLAMP_TOP * 100,
+        c0 = TASK.clamp.center_x - TASK.clamp.half_thickness
+        ax.add_patch(Rectangle((c0 * 100, 0), 2 * TASK.clamp.half_thickness * 100, TASK.clamp.top * 100,
                                color="0.85", ec="k", label="clamp"))
-        ax.add_patch(Rectangle(((scenes.FIXTURE_XY[0] - scenes.SHAFT_RADIUS) * 100, 0), scenes.SHAFT_RADIUS * 200,
-                               scenes.FIXTURE_TOP * 100, color="0.6", ec="k", label="shaft"))
+        ax.add_patch(Rectangle(((TASK.top[0] - TASK.fixture.shaft_radius) * 100, 0), TASK.fixture.shaft_radius * 200,
+                               TASK.top[2] * 100, color="0.6", ec="k", label="shaft"))
         x_ref = pol.x_ref.numpy()
         for k, w in enumerate(w for w in demo_waypoints(x_ref) if abs(w[0, 1]) < 1e-9):
             ax.plot(w[:, 0] * 100, w[:, 2] * 100, "--", color="w", lw=0.8,

@@ -23,6 +23,9 @@ import torch
 from learner_node.config import TrainConfig
 from learner_node.flow import activation_and_derivative, rescale_flow_weights
 from learner_node.trainer import EVAL_SEED_BASE, Trainer, make_evaluator
+from nf_core.task_spec import load_task
+
+TASK = load_task("gear_clamp")
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "gear_clamp.yaml"
 LIFT = 0.20  # m, plateau of the lift (the fit reaches ~0.17-0.21 m over the clamp)
@@ -86,7 +89,6 @@ def plot(path: Path, columns: dict, paths: dict) -> None:
     from matplotlib.colors import LogNorm
     from matplotlib.patches import Rectangle
 
-    from sim_bridge_node import scenes
 
     xs, zs = np.linspace(0.42, 0.78, 145), np.linspace(0.04, 0.32, 113)
     gx, gz = np.meshgrid(xs, zs)
@@ -103,15 +105,15 @@ def plot(path: Path, columns: dict, paths: dict) -> None:
                          norm=LogNorm())
         ax.contour(gx * 100, gz * 100, np.clip(v, levels[0], None), levels=levels, colors="k", linewidths=0.3,
                    alpha=0.5)
-        c0 = scenes.CLAMP_CENTER_X - scenes.CLAMP_HALF_THICKNESS
-        ax.add_patch(Rectangle((c0 * 100, 0), 2 * scenes.CLAMP_HALF_THICKNESS * 100, scenes.CLAMP_TOP * 100,
+        c0 = TASK.clamp.center_x - TASK.clamp.half_thickness
+        ax.add_patch(Rectangle((c0 * 100, 0), 2 * TASK.clamp.half_thickness * 100, TASK.clamp.top * 100,
                                color="0.85", ec="k", label="clamp"))
-        ax.add_patch(Rectangle(((scenes.FIXTURE_XY[0] - scenes.SHAFT_RADIUS) * 100, 0), scenes.SHAFT_RADIUS * 200,
-                               scenes.FIXTURE_TOP * 100, color="0.6", ec="k", label="shaft"))
+        ax.add_patch(Rectangle(((TASK.top[0] - TASK.fixture.shaft_radius) * 100, 0), TASK.fixture.shaft_radius * 200,
+                               TASK.top[2] * 100, color="0.6", ec="k", label="shaft"))
         for k, tcp in enumerate(paths[name]):
             ax.plot(tcp[:, 0] * 100, tcp[:, 2] * 100, "-", color="r", lw=0.9, alpha=0.8,
                     label="TCP paths (gear's lower face)" if k == 0 else None)
-        ax.plot(scenes.FIXTURE_XY[0] * 100, (scenes.FIXTURE_TOP - 0.02) * 100, "*", color="w", ms=12)
+        ax.plot(TASK.top[0] * 100, (TASK.top[2] - 0.02) * 100, "*", color="w", ms=12)
         ax.set_aspect("equal")
         ax.set_xlim(xs[0] * 100, xs[-1] * 100)
         ax.set_ylim(zs[0] * 100, zs[-1] * 100)

@@ -15,6 +15,7 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),  # config/ -> the repository's config/
+        (f"share/{PACKAGE}/config/tasks", glob("config/tasks/*.yaml")),  # the built-in task files
     ],
     install_requires=["setuptools"],
     zip_safe=True,

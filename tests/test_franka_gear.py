@@ -23,14 +23,15 @@ from nf_core import panda_spec
 from nf_core.episode import EpisodeRun, EpisodeSpec
 from nf_core.policy_params import PolicyParameters
 from nf_core.reward import RewardWeights
-from sim_bridge_node import scenes
+from nf_core.task_spec import load_task
 
 from franky import DriverRig
 
 pylibfranka = pytest.importorskip("pylibfranka")
 
+GEAR_TASK = load_task("gear")
 MOUTH = DriverConfig().fixture_position  # where --gear puts the pin's top face (base frame)
-SEAT = MOUTH - np.array([0.0, 0.0, scenes.SHAFT_LENGTH])  # TCP of the seated gear: the gear task's goal
+SEAT = MOUTH - np.array([0.0, 0.0, GEAR_TASK.fixture.shaft_length])  # TCP of the seated gear: the gear task's goal
 ABOVE = np.array([0.0, 0.0, 0.04])  # start 40 mm above the mouth: a short reset and a short episode
 # Gains as config/gear.yaml advises (laterally stiffer than along the axis), raised against
 # franky-sim's joint friction (about 5 N at the TCP).
@@ -112,7 +113,7 @@ def test_on_the_axis_the_gear_goes_down_the_pin_and_seats_on_the_shoulder(tmp_pa
           f"({time.monotonic() - t0:.1f} s in all)")
     assert goal.exceptions == pressed.exceptions == 0
     assert goal.depth >= DriverConfig().success_depth and goal.success
-    assert np.hypot(*(goal.x[:2] - MOUTH[:2])) < scenes.SHAFT_RADIUS - panda_spec.GEAR_BORE_RADIUS + 0.002
+    assert np.hypot(*(goal.x[:2] - MOUTH[:2])) < GEAR_TASK.fixture.shaft_radius - panda_spec.GEAR_BORE_RADIUS + 0.002
     # pushed 10 mm past the seat with 6 N: the shoulder holds the gear where the model says it sits
     assert pressed.success and pressed.x[2] == pytest.approx(SEAT[2], abs=0.001), pressed.summary()
 

@@ -1,5 +1,5 @@
-"""gear_clamp (issue 31, item 2): the scene builds, the clamp stands where the constants and
-config/gear_clamp.yaml say, the starts lie behind it, and the prior's straight path runs into it."""
+"""gear_clamp: the scene builds, the clamp stands where its task file (config/tasks/gear_clamp.yaml) says,
+the starts lie behind it, and the prior's straight path runs into it."""
 
 from __future__ import annotations
 
@@ -12,13 +12,16 @@ import pytest
 from learner_node.config import TrainConfig
 from learner_node.trainer import Trainer, make_evaluator
 from nf_core import panda_spec
+from nf_core.task_spec import load_task
 from sim_bridge_node import scenes
 from sim_bridge_node.env import InsertionEnv
 from sim_bridge_node.scripted_insertion import HAND_DOWN
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "gear_clamp.yaml"
-CLAMP_LO = np.array([scenes.CLAMP_CENTER_X - scenes.CLAMP_HALF_THICKNESS, -scenes.CLAMP_HALF_LENGTH, 0.0])
-CLAMP_HI = np.array([scenes.CLAMP_CENTER_X + scenes.CLAMP_HALF_THICKNESS, scenes.CLAMP_HALF_LENGTH, scenes.CLAMP_TOP])
+TASK = load_task("gear_clamp")
+_C = TASK.clamp
+CLAMP_LO = np.array([_C.center_x - _C.half_thickness, -_C.half_length, 0.0])
+CLAMP_HI = np.array([_C.center_x + _C.half_thickness, _C.half_length, _C.top])
 
 
 @pytest.fixture(scope="module")
@@ -44,16 +47,16 @@ def test_config_selects_the_task():
     assert cfg == learn
 
 
-def test_scene_has_the_clamp_where_the_constants_say(env):
+def test_scene_has_the_clamp_where_the_task_file_says(env):
     m = env.model
     geom = m.geom("clamp_jaw")
     body_pos = m.body("clamp").pos
     centre = body_pos + m.geom_pos[geom.id]
-    np.testing.assert_allclose(centre - m.geom_size[geom.id], CLAMP_LO + [0, scenes.FIXTURE_XY[1], 0], atol=1e-12)
-    np.testing.assert_allclose(centre + m.geom_size[geom.id], CLAMP_HI + [0, scenes.FIXTURE_XY[1], 0], atol=1e-12)
+    np.testing.assert_allclose(centre - m.geom_size[geom.id], CLAMP_LO + [0, TASK.top[1], 0], atol=1e-12)
+    np.testing.assert_allclose(centre + m.geom_size[geom.id], CLAMP_HI + [0, TASK.top[1], 0], atol=1e-12)
     assert m.geom_conaffinity[geom.id] and m.geom_contype[geom.id] == 0  # collides with the moving parts
     # between the shaft's base block and the start, clear of the seated gear
-    assert CLAMP_LO[0] > scenes.FIXTURE_XY[0] + scenes.FIXTURE_BASE_HALF
+    assert CLAMP_LO[0] > TASK.top[0] + scenes.FIXTURE_BASE_HALF
     assert not _gear_overlaps_clamp(env.goal_position)
     # the gear task keeps its scene: no clamp there
     assert mujoco.mj_name2id(scenes.build_scene("gear").model, mujoco.mjtObj.mjOBJ_GEOM, "clamp_jaw") == -1
@@ -61,15 +64,15 @@ def test_scene_has_the_clamp_where_the_constants_say(env):
 
 def test_fixed_start_is_behind_and_below_the_clamp(env):
     obs = env.reset()
-    np.testing.assert_allclose(obs.x, scenes.START_TCP_GEAR_CLAMP, atol=1e-5)
+    np.testing.assert_allclose(obs.x, TASK.start.tcp, atol=1e-5)
     np.testing.assert_allclose(env.tcp_rotation, HAND_DOWN, atol=1e-5)
     assert env.data.ncon == 0
-    np.testing.assert_allclose(env.goal_position, [*scenes.FIXTURE_XY, scenes.FIXTURE_TOP - panda_spec.GEAR_DEPTH])
+    np.testing.assert_allclose(env.goal_position, TASK.top - [0.0, 0.0, panda_spec.GEAR_DEPTH])
 
 
 def test_sampled_starts_lie_in_the_start_region(env):
     lo, hi = env.scene.start_region
-    assert env.start_std[0] == scenes.START_STD_GEAR_CLAMP
+    assert env.start_std[0] == TASK.start.joint_std == 0.05
     for seed in range(10):
         x = env.reset(seed=seed).x
         assert np.all(x >= lo) and np.all(x <= hi), (seed, x)

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from nf_core import panda_spec
+from nf_core.task_spec import load_task
 from sim_bridge_node.env import InsertionEnv
-from sim_bridge_node.scenes import SHAFT_LENGTH
 from sim_bridge_node.scripted_insertion import run_insertion
 
 MAX_PENETRATION = 0.0005  # m
@@ -52,7 +52,7 @@ def test_gear_bore_clearance_is_one_millimetre():
     model = env.model
     shaft = model.geom("shaft_pin")
     assert shaft.size[0] == pytest.approx(0.014)
-    assert 2 * shaft.size[1] == pytest.approx(SHAFT_LENGTH)
+    assert 2 * shaft.size[1] == pytest.approx(load_task("gear").fixture.shaft_length)
     inner = []
     for k in range(16):
         g = model.geom(f"gear_segment_{k}")

@@ -7,9 +7,10 @@ import pytest
 from sim_testing import full_state, push_rollout
 
 from nf_core import panda_spec
+from nf_core.task_spec import load_task
 from sim_bridge_node.batched_env import BatchedEnv
 from sim_bridge_node.env import InsertionEnv
-from sim_bridge_node.scenes import FIXTURE_TOP, FIXTURE_XY, START_HEIGHT, TASKS, build_scene
+from sim_bridge_node.scenes import TASKS, build_scene
 from sim_bridge_node.scripted_insertion import HAND_DOWN, push_torque
 
 
@@ -30,11 +31,12 @@ def test_fixed_start_points_down_above_the_fixture(task):
     env = InsertionEnv(task)
     obs = env.reset()
     np.testing.assert_array_equal(obs.q, env.q_mean)
-    np.testing.assert_allclose(obs.x, [*FIXTURE_XY, FIXTURE_TOP + START_HEIGHT], atol=1e-5)
+    spec = load_task(task)
+    np.testing.assert_allclose(obs.x, spec.top + [0.0, 0.0, spec.start.height], atol=1e-5)
     np.testing.assert_allclose(env.tcp_rotation, HAND_DOWN, atol=1e-5)
     np.testing.assert_array_equal(obs.dq, 0.0)
     assert env.time == 0.0 and env.insertion_depth == 0.0 and not env.success
-    np.testing.assert_allclose(env.goal_position, [*FIXTURE_XY, FIXTURE_TOP - 0.02])
+    np.testing.assert_allclose(env.goal_position, spec.top - [0.0, 0.0, 0.02])
 
 
 def test_every_name_is_set():

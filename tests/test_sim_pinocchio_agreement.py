@@ -12,6 +12,7 @@ import pytest
 
 from nf_controller_node.arm_model import ArmModel
 from nf_core import panda_spec
+from nf_core.task_spec import held_part_inertia
 from sim_bridge_node.held_parts import GEAR, PEG
 from sim_bridge_node.scenes import build_scene
 
@@ -85,17 +86,17 @@ def test_gear_scene_has_the_same_arm_dynamics():
 
 
 def test_one_held_part_type_shared_by_sim_and_controller():
-    """The simulator's parts are panda_spec's, and held_part_by_name gives the controller the same ones."""
+    """The simulator's parts are panda_spec's, and held_part_inertia gives the controller the same ones."""
     assert GEAR is panda_spec.GEAR_PART and PEG is panda_spec.PEG_PART
-    assert panda_spec.held_part_by_name("gear") is GEAR
-    assert panda_spec.held_part_by_name("peg") is PEG
-    assert panda_spec.held_part_by_name("none") is None
+    assert held_part_inertia("gear") is GEAR
+    assert held_part_inertia("peg") is PEG
+    assert held_part_inertia("none") is None
     for bad in ("anvil", "", "Gear"):
         with pytest.raises(ValueError, match="held_part must be one of"):
-            panda_spec.held_part_by_name(bad)
+            held_part_inertia(bad)
     # the peg's TCP is its tip, 3 cm from the gear's bore mouth: the arm models must differ there
     q = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
-    gear_x = ArmModel(part=panda_spec.held_part_by_name("gear")).tcp_position(q)
-    peg_x = ArmModel(part=panda_spec.held_part_by_name("peg")).tcp_position(q)
+    gear_x = ArmModel(part=held_part_inertia("gear")).tcp_position(q)
+    peg_x = ArmModel(part=held_part_inertia("peg")).tcp_position(q)
     dz = float(panda_spec.PEG_TCP_IN_HAND[2] - panda_spec.TCP_IN_HAND[2])
     assert abs(np.linalg.norm(peg_x - gear_x) - abs(dz)) < 1e-9

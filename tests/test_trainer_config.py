@@ -27,7 +27,7 @@ def test_task_defaults_follow_the_paper():
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        ({"task": "car"}, "task must be one of"),
+        ({"task": "car"}, "unknown task .car.: give a built-in task"),
         ({"policy": "lstm"}, "policy must be one of"),
         ({"sigma_init": -1.0}, "sigma_init must be > 0"),
         ({"sigma_init": "abc"}, "sigma_init must be float"),

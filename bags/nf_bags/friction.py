@@ -257,13 +257,23 @@ def smoothed_slope(t: np.ndarray, y: np.ndarray, valid: np.ndarray, seg: np.ndar
 
 
 # ---------------------------------------------------------------------- model
+def _task_part(task: str) -> str:
+    """The held part of a recorded task (``Part.text``): its task file's, or the gear when the file is not here."""
+    from nf_core.task_spec import TaskFileError, load_task
+
+    try:
+        return load_task(task).part.text()
+    except TaskFileError:
+        return "gear"
+
+
 def arm_model(kind: str, names: Sequence[str], urdf: str | None, held_part: str, armature: np.ndarray | None
               ) -> tuple[Any, str]:
     """The controller's Pinocchio ``ArmModel`` of arm ``kind`` (auto: from the joint names) holding
     ``held_part``, with ``urdf`` instead of the arm's description if given; and its kind."""
     from franka_driver.robot_model import SPECS
     from nf_controller_node.arm_model import ArmModel
-    from nf_core.panda_spec import held_part_by_name
+    from nf_core.task_spec import held_part_inertia
 
     if kind == "auto":
         kinds = [k for k, spec in SPECS.items() if sorted(names) == sorted(spec.joint_names)]
@@ -274,7 +284,7 @@ def arm_model(kind: str, names: Sequence[str], urdf: str | None, held_part: str,
     spec = SPECS[kind]
     if sorted(names) != sorted(spec.joint_names):
         raise ValueError(f"the recorded joints {list(names)} are not the {kind}'s {list(spec.joint_names)}")
-    model = ArmModel(urdf or spec.urdf_path(), armature=armature, part=held_part_by_name(held_part),
+    model = ArmModel(urdf or spec.urdf_path(), armature=armature, part=held_part_inertia(held_part),
                      joint_names=spec.joint_names, finger_joint_names=spec.finger_joint_names,
                      hand_frame=spec.hand_frame)
     return model, kind
@@ -495,7 +505,7 @@ def identify_bag(bag: str | Path, *, arm: str | None = None, model: str = "auto"
         elif task is None:
             part, part_source = "gear", "no task status in the bag: the drivers' default held part"
         else:
-            part, part_source = ("peg" if task == "peg" else "gear"), f"the recorded task {task!r}"
+            part, part_source = _task_part(task), f"the recorded task {task!r}"
     values = np.broadcast_to(np.asarray(JOINT_ARMATURE if armature is None else armature, float), (7,)).copy()
     arm_, kind = arm_model(model, states.names, urdf, part, values)
     drivers = recorded_drivers(bag) if effort == "auto" else {}

@@ -35,9 +35,9 @@ from std_srvs.srv import Trigger
 
 from nf_core import qos, topics
 from nf_core.driver_loop import loop_priority
-from nf_core.panda_spec import HELD_PART_NAMES, held_part_by_name
 from nf_core.ros_runtime import declare_read_only
 from nf_core.serialized_message import SerializedMessage
+from nf_core.task_spec import HELD_PART_HELP, held_part_inertia
 from nf_core.thread_priority import AUTO, open_robot
 from nf_core.tick_timing import latency_summary
 
@@ -51,7 +51,7 @@ PARAMETERS = {
     "rt_priority": (AUTO, "SCHED_FIFO priority of the torque loop's thread (only): -1 auto (99, as libfranka "
                           "gives its threads; with realtime ignore only if allowed), 0 normal, 1..99"),
     "robot_model": ("auto", f"arm type, checked against the robot's own model: {' | '.join(ROBOT_KINDS)}"),
-    "held_part": ("gear", f"part in the hand (must equal nf_controller's): {' | '.join(HELD_PART_NAMES)}"),
+    "held_part": ("gear", f"part in the hand (must equal nf_controller's): {HELD_PART_HELP}"),
     "start_position": (_D.start_position.tolist(), "m, TCP position the reset motion drives to before each episode"),
     "fixture_position": (_D.fixture_position.tolist(),
                          "m, the fixture's mouth (insertion axis along -z) in the base frame"),
@@ -84,7 +84,7 @@ def _check(p: dict) -> None:
         raise ValueError(f"realtime must be enforce or ignore, got {p['realtime']!r}")
     if p["robot_model"] not in ROBOT_KINDS:
         raise ValueError(f"robot_model must be one of {ROBOT_KINDS}, got {p['robot_model']!r}")
-    held_part_by_name(p["held_part"])
+    held_part_inertia(p["held_part"])
     for name in ("joint_state_rate", "diagnostics_period"):
         if not p[name] > 0.0:
             raise ValueError(f"{name} must be > 0, got {p[name]}")
@@ -138,7 +138,7 @@ class FrankaDriverNode(Node):
         except WrongRobotModelError as exc:
             raise ValueError(str(exc)) from None
         self.spec = self.identification.spec
-        self.part = held_part_by_name(p["held_part"])
+        self.part = held_part_inertia(p["held_part"])
         self.arm = self.spec.arm_model(self.part)  # the controller's model (its tick thread owns it)
         self._tcp_arm = self.spec.arm_model(self.part)  # the driver's own copy for the TCP position
         self.joint_names = list(self.spec.joint_names)

@@ -24,8 +24,9 @@ import yaml
 from nf_core.flow_spec import FLOW_INITS
 from nf_core.friction import FrictionRanges
 from nf_core.policy_params import PolicyLaw
+from nf_core.task_spec import TaskFileError, load_task
 
-TASKS = ("gear", "peg", "block", "gear_clamp")
+TASKS = ("gear", "peg", "block", "gear_clamp")  # built in; any task file (a path) is a task too
 POLICIES = ("nf", "mlp")
 STARTS = ("random", "fixed")
 GAINS = ("fixed", "learned")
@@ -184,9 +185,7 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         self._coerce_types()
-        if self.task not in TASKS:
-            raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
-        for name, value in TASK_DEFAULTS[self.task].items():
+        for name, value in TASK_DEFAULTS[self.task_kind].items():
             if getattr(self, name) is None:
                 setattr(self, name, value)
         self.validate()
@@ -286,9 +285,21 @@ class TrainConfig:
         return 2 if self.task == "block" else 3
 
     @property
+    def task_kind(self) -> str:
+        """The task's kind: ``block``, or its task file's part (``gear``, ``peg``); the built-in task files keep
+        their name (``gear_clamp``). Raises ``ValueError`` for a task that is neither a built-in nor a file."""
+        if self.task in TASK_DEFAULTS:
+            return self.task
+        try:
+            return load_task(self.task).kind
+        except TaskFileError as e:
+            raise ValueError(f"task: {e}") from None
+
+    @property
     def held_part(self) -> str:
-        """The part in the simulated hand: the peg for the peg task, else the gear."""
-        return "peg" if self.task == "peg" else "gear"
+        """The part in the simulated hand (``Part.text``): the task file's part; the gear for the block task
+        (whose scene has no arm)."""
+        return "gear" if self.task == "block" else load_task(self.task).part.text()
 
     def policy_law(self) -> PolicyLaw:
         """The law the policy runs under (force bound, stiffness floor, held part; the gains' defaults):

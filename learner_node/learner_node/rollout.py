@@ -33,10 +33,10 @@ import numpy as np
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.controller import FlowController
 from nf_controller_node.torque_law import TorqueLawConfig, excess_norm
-from nf_core import panda_spec
 from nf_core.episode import EpisodeRun, EpisodeSpec
 from nf_core.friction import FrictionRanges
 from nf_core.reward import RewardWeights
+from nf_core.task_spec import held_part_inertia
 from sim_bridge_node.env import InsertionEnv
 
 from .config import TrainConfig
@@ -106,7 +106,7 @@ class RolloutRunner:
             self.x_ref = self.goal[BLOCK_AXES].copy()
         else:
             # the controller's arm model carries the same part (mass, TCP) as the simulated hand
-            self.arm = ArmModel(part=panda_spec.held_part_by_name(cfg.held_part))
+            self.arm = ArmModel(part=held_part_inertia(cfg.held_part))
             self.x_ref = self.goal.copy()
         if cfg.goal is not None:  # a goal measured on a real cell: the policy's x_ref and the reward's goal
             self.x_ref = np.asarray(cfg.goal, dtype=np.float64)

@@ -20,7 +20,7 @@ from .trainer import CHECKPOINT, Trainer, run_evaluations
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="train", description=__doc__.splitlines()[0])
     ap.add_argument("--config", type=Path, help="ROS 2 parameters YAML of the task (e.g. config/gear.yaml)")
-    ap.add_argument("--task", choices=TASKS)
+    ap.add_argument("--task", help=f"a built-in task ({', '.join(TASKS)}) or the path of a task file")
     ap.add_argument("--policy", choices=("nf", "mlp"))
     ap.add_argument("--sigma-init", type=float, help="initial noise std, N")
     ap.add_argument("--seed", type=int)

@@ -43,10 +43,10 @@ from std_srvs.srv import Trigger
 
 from nf_core import qos
 from nf_core.episode import Chunk, EpisodeRun, EpisodeSpec, check_goal_duration
-from nf_core.panda_spec import HELD_PART_NAMES, held_part_by_name
 from nf_core.policy_params import PolicyLaw, PolicyParameterError, PolicyParameters
 from nf_core.reward import DEFAULT_WEIGHTS
 from nf_core.ros_runtime import declare_read_only, run_node
+from nf_core.task_spec import HELD_PART_HELP, held_part_inertia
 from nf_core.topics import (
     COMMANDS,
     CONTROLLER_STATUS,
@@ -72,7 +72,7 @@ PARAMETERS = {
     "driver_effort": ("measured", "what joint_states' effort is: measured (the joint torque, gravity included: "
                       "franka_ros2, libfranka tau_J) | command (the command applied, without the gravity the driver "
                       "adds: sim_bridge); a restarted controller ramps from its command part"),
-    "held_part": ("gear", f"mass model and TCP of the part in the hand: {' | '.join(HELD_PART_NAMES)}"),
+    "held_part": ("gear", f"mass model and TCP of the part in the hand: {HELD_PART_HELP}"),
     "hold_damping": (_LAW.hold_damping, "joint damping of the safe hold, Nm s/rad"),
     "hold_stiffness": (_LAW.hold_stiffness, "Nm/rad of the safe hold's joint spring to where the hold began "
                        "(its anchor; 0: damping only, the arm coasts)"),
@@ -126,7 +126,7 @@ def _goal_problem(goal: RunEpisode.Goal) -> str:
 
 
 def _loop_from(p: dict, arm: ArmModel | None = None, joint_names: Sequence[str] | None = None) -> ControlLoop:
-    part = held_part_by_name(p["held_part"])  # ValueError names the choices
+    part = held_part_inertia(p["held_part"])  # ValueError names the choices
     if p["driver_effort"] not in DRIVER_EFFORTS:
         raise ValueError(f"driver_effort must be one of {DRIVER_EFFORTS}, got {p['driver_effort']!r}")
     for name in ("status_rate", "diagnostics_period"):

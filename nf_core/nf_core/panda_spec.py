@@ -132,17 +132,3 @@ class HeldPartInertia:
 GEAR_PART = HeldPartInertia(GEAR_MASS, GEAR_COM_IN_HAND, gear_inertia(), TCP_IN_HAND, "gear", "gear", TCP_FRAME)
 PEG_PART = HeldPartInertia(PEG_MASS, PEG_COM_IN_HAND, peg_inertia(), PEG_TCP_IN_HAND, "peg", "peg", PEG_TCP_FRAME)
 HELD_PARTS = {"gear": GEAR_PART, "peg": PEG_PART}
-HELD_PART_NAMES = ("gear", "peg", "none")
-
-
-def held_part_by_name(name: str) -> HeldPartInertia | None:
-    """The held part of a ``held_part`` parameter: ``gear`` or ``peg``, or None for ``none`` (bare hand).
-
-    Raises ``ValueError`` for any other name.
-    """
-    if name == "none":
-        return None
-    try:
-        return HELD_PARTS[name]
-    except (KeyError, TypeError):
-        raise ValueError(f"held_part must be one of {HELD_PART_NAMES}, got {name!r}") from None

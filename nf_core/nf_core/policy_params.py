@@ -14,7 +14,8 @@ from typing import Any
 import numpy as np
 
 from .flow_spec import FlowArchitecture
-from .panda_spec import HELD_PART_NAMES, MAX_REACH
+from .panda_spec import MAX_REACH
+from .task_spec import TaskFileError, part_from_text
 
 
 class PolicyParameterError(ValueError):
@@ -88,7 +89,7 @@ class PolicyLaw:
     d_rot: float = 3.0  # Nm s/rad, orientation damping
     joint_damping: float = 0.5  # Nm s/rad, null-space joint damping
     stiffness_floor: float = 0.0  # N/m: no diagonal entry of S below it; 0: none
-    held_part: str = "gear"  # the part in the hand the policy was learned with: gear | peg | none
+    held_part: str = "gear"  # the part in the hand the policy was learned with: gear | peg | none | Part.text()
 
     def __post_init__(self) -> None:
         for name in ("potential_force_bound", "k_rot", "d_rot", "joint_damping", "stiffness_floor"):
@@ -99,8 +100,10 @@ class PolicyLaw:
             if not (math.isfinite(value) and value >= 0.0):
                 raise PolicyParameterError(f"law: {name} must be finite and >= 0, got {getattr(self, name)!r}")
             object.__setattr__(self, name, value)
-        if self.held_part not in HELD_PART_NAMES:
-            raise PolicyParameterError(f"law: held_part must be one of {HELD_PART_NAMES}, got {self.held_part!r}")
+        try:
+            part_from_text(self.held_part)
+        except TaskFileError as e:
+            raise PolicyParameterError(f"law: {e}") from None
 
     def check_limits(self, limits: PolicyLimits = POLICY_LIMITS) -> None:
         """Raise ``PolicyParameterError`` naming the first gain beyond ``limits``."""

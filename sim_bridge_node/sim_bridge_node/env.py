@@ -351,7 +351,7 @@ class InsertionEnv:
         tcp = self.data.site_xpos[self._site]
         lateral = np.abs(tcp[:2] - self.scene.insertion_axis_xy)
         inside = np.hypot(*lateral) < self.scene.lateral_tolerance
-        if self.task == "peg":
+        if self.scene.kind == "peg":
             inside = bool(np.max(lateral) < self.scene.lateral_tolerance)
         elif self.task == "block":
             inside = bool(lateral[0] < self.scene.lateral_tolerance)

@@ -11,22 +11,13 @@ import mujoco
 import numpy as np
 
 from nf_core import panda_spec
+from nf_core.task_spec import BUILTIN_PARTS, Part
 from sim_bridge_node.panda_model import CONTACT_MOVING, set_weld_inertia
 
 GEAR_SEGMENTS = 16  # box pieces around the bore; the bore is the regular 16-gon of inradius 15 mm
 GEAR_TEETH = 24  # drawn only, no contact
 GEAR_RGBA = np.array([0.95, 0.65, 0.1, 1.0])
 PEG_RGBA = np.array([0.2, 0.45, 0.95, 1.0])
-
-# The peg's dimensions and the held-part type live in panda_spec (shared with the controller's arm
-# model); re-exported here for the scene builders.
-PEG_RADIUS = panda_spec.PEG_RADIUS
-PEG_LENGTH = panda_spec.PEG_LENGTH
-PEG_TOP_IN_HAND = panda_spec.PEG_TOP_IN_HAND
-PEG_MASS = panda_spec.PEG_MASS
-PEG_COM_IN_HAND = panda_spec.PEG_COM_IN_HAND
-PEG_TCP_IN_HAND = panda_spec.PEG_TCP_IN_HAND
-peg_inertia = panda_spec.peg_inertia
 
 HeldPart = panda_spec.HeldPartInertia  # names and hand-frame geometry of the part the hand holds
 GEAR = panda_spec.GEAR_PART
@@ -52,18 +43,21 @@ def _visual_geom(body: mujoco.MjsBody, name: str, rgba: np.ndarray) -> mujoco.Mj
     return geom
 
 
-def add_gear(hand: mujoco.MjsBody) -> HeldPart:
-    """Weld the gear ring to ``hand``: body ``gear``, site ``gear_tcp``, 16 box segments.
+def add_gear(hand: mujoco.MjsBody, part: Part | None = None) -> HeldPart:
+    """Weld the gear ring of ``part`` (default: the gear task's) to ``hand``: body ``gear``, site
+    ``gear_tcp``, 16 box segments.
 
     Body frame = hand axes, origin at the gear's centre (its COM). Each segment is a box whose
     inner face lies exactly at the bore radius; the boxes are as wide as the outer polygon
     needs, so neighbours overlap outside the bore and the bore stays a clean 16-gon.
     """
-    r_in, r_out, depth = panda_spec.GEAR_BORE_RADIUS, panda_spec.GEAR_OUTER_RADIUS, panda_spec.GEAR_DEPTH
+    part = part or Part()
+    r_in, r_out, depth = part.bore_radius, part.outer_radius, part.thickness
+    held = part.inertia()
     body = hand.add_body()
-    body.name = GEAR.body
-    body.pos = GEAR.com_in_hand
-    set_weld_inertia(body, GEAR.mass, np.zeros(3), GEAR.inertia)
+    body.name = held.body
+    body.pos = held.com_in_hand
+    set_weld_inertia(body, held.mass, np.zeros(3), held.inertia)
     half_radial = 0.5 * (r_out - r_in)
     half_tangent = r_out * np.tan(np.pi / GEAR_SEGMENTS)
     for k in range(GEAR_SEGMENTS):
@@ -84,25 +78,28 @@ def add_gear(hand: mujoco.MjsBody) -> HeldPart:
         geom.pos = [radius * np.cos(angle), radius * np.sin(angle), 0.0]
         geom.quat = [np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)]
     site = body.add_site()
-    site.name = GEAR.tcp_site
-    site.pos = GEAR.tcp_in_hand - GEAR.com_in_hand
+    site.name = held.tcp_site
+    site.pos = held.tcp_in_hand - held.com_in_hand
     site.size = [0.003, 0.003, 0.003]
     site.rgba = [1.0, 0.1, 0.1, 1.0]
-    return GEAR
+    return held
 
 
-def add_peg(hand: mujoco.MjsBody) -> HeldPart:
-    """Weld the 23 mm peg to ``hand``: body ``peg`` (one convex cylinder), site ``peg_tcp`` at its tip."""
+def add_peg(hand: mujoco.MjsBody, part: Part | None = None) -> HeldPart:
+    """Weld the peg of ``part`` (default: the peg task's) to ``hand``: body ``peg`` (one convex cylinder),
+    site ``peg_tcp`` at its tip."""
+    part = part or BUILTIN_PARTS["peg"]
+    held = part.inertia()
     body = hand.add_body()
-    body.name = PEG.body
-    body.pos = PEG.com_in_hand
-    set_weld_inertia(body, PEG.mass, np.zeros(3), PEG.inertia)
+    body.name = held.body
+    body.pos = held.com_in_hand
+    set_weld_inertia(body, held.mass, np.zeros(3), held.inertia)
     geom = _solid_geom(body, "peg_cylinder", PEG_RGBA)
     geom.type = mujoco.mjtGeom.mjGEOM_CYLINDER
-    geom.size = [PEG_RADIUS, 0.5 * PEG_LENGTH, 0.0]
+    geom.size = [part.radius, 0.5 * part.length, 0.0]
     site = body.add_site()
-    site.name = PEG.tcp_site
-    site.pos = PEG.tcp_in_hand - PEG.com_in_hand
+    site.name = held.tcp_site
+    site.pos = held.tcp_in_hand - held.com_in_hand
     site.size = [0.003, 0.003, 0.003]
     site.rgba = [1.0, 0.1, 0.1, 1.0]
-    return PEG
+    return held

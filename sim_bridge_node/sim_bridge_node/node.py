@@ -57,6 +57,7 @@ from nf_core.driver_loop import LoopHost, loop_priority
 from nf_core.friction import FrictionRanges
 from nf_core.ros_runtime import declare_read_only, run_node
 from nf_core.serialized_message import SerializedMessage
+from nf_core.task_spec import load_task
 from nf_core.thread_priority import AUTO, top_priority
 from nf_core.tick_timing import latency_summary
 from nf_core.topics import parse_stamp_label
@@ -67,7 +68,7 @@ from sim_bridge_node.response_timing import ResponseTiming
 from sim_bridge_node.scenes import TASKS
 
 PARAMETERS = {
-    "task": ("gear", f"scene: one of {TASKS}"),
+    "task": ("gear", f"scene: one of {TASKS} or the path of a task file (config/tasks/README.md)"),
     "block_plane": ("vertical", "block task only: vertical | horizontal"),
     "mode": ("lockstep", "lockstep (step per command, publishes clock) | realtime (1 kHz wall clock)"),
     "driver_gravity_compensation": (False, "add the simulator's gravity torque to every command (like Franka)"),
@@ -111,8 +112,8 @@ _ALL_LISTENED = (True, True, True, True)  # joint_states, applied commands, cloc
 
 
 def _check(p: dict) -> None:
-    if p["task"] not in TASKS:
-        raise ValueError(f"task must be one of {TASKS}, got {p['task']!r}")
+    if p["task"] not in ("block", "free"):
+        load_task(p["task"])  # TaskFileError (a ValueError) names what is wrong
     for name in ("lockstep_resend", "diagnostics_period"):
         if not p[name] > 0.0:
             raise ValueError(f"{name} must be > 0, got {p[name]}")

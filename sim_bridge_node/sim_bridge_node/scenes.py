@@ -1,23 +1,21 @@
-"""MuJoCo scenes for the three tasks, plus a free-space scene, built with ``mujoco.MjSpec``.
+"""MuJoCo scenes of the task files (nf_core.task_spec, config/tasks/), plus the 2-D block and a free-space
+scene, built with ``mujoco.MjSpec``.
 
 World frame: the Panda's base (``panda_link0``) at the origin on the table plane z = 0, x forward.
 
-- ``gear``: a stepped steel shaft at ``FIXTURE_XY`` on the table: a 100 x 100 x 40 mm base block,
-  a 44 mm shoulder 30 mm high, then the 28 mm pin, ``GEAR_DEPTH`` (20 mm) long, so the pin top is
-  at ``FIXTURE_TOP`` and the gear seats on the shoulder at full depth.
-- ``peg``: a block with a 25 mm square hole, 20 mm deep, top face at ``FIXTURE_TOP``, made of a
-  base and four wall boxes; the arm holds the 23 mm peg instead of the gear.
+- a gear task (``gear``, ``gear_clamp``, a user's file with ``part: kind: gear``): a stepped steel shaft
+  on the table: a square base block (at least 100 x 100 mm, 40 mm high), a shoulder up to the pin's
+  foot, then the pin, ``shaft_length`` long, its top face at the fixture's ``position``; the gear seats on
+  the shoulder at full depth. With a ``clamp``, a steel jaw stands between the start and the shaft.
+- a peg task (``peg``): a block with a square hole, its mouth at the fixture's ``position``, made of a
+  base and four wall boxes; the arm holds the peg instead of the gear.
 - ``block``: no arm. A 50 mm, 1 kg cube on two slide joints (x and z) with force motors, above a
   slot 52 mm wide (1 mm per side) and 50 mm deep cut between two wall boxes.
-- ``gear_clamp``: the ``gear`` scene plus a clamp (a steel jaw, ``CLAMP_*``) standing between the
-  gear's start and the shaft; the gear starts low behind it (``Q_MEAN_GEAR_CLAMP``, TCP below the
-  clamp's top), so it has to be lifted over the clamp and lowered onto the shaft. Every path along
-  which each coordinate moves monotonically to the goal runs into the clamp (``gear_clamp.yaml``).
-- ``free``: the Panda with the gear, the table plane and lights, nothing else.
+- ``free``: the Panda with the gear task's gear, the table plane and lights, nothing else.
 
-Contacts: every solid geom of a scene uses ``CONTACT_SOLREF``/``CONTACT_SOLIMP`` and friction
-``CONTACT_FRICTION`` (steel on aluminium), which keeps resting penetration well below 0.5 mm
-under the forces the arm can push with; convex pairs yield one contact each (multi-point
+Contacts: every solid geom of a scene uses ``CONTACT_SOLREF``/``CONTACT_SOLIMP`` and the task's sliding
+friction (``CONTACT_FRICTION``'s torsional and rolling parts), which keeps resting penetration well
+below 0.5 mm under the forces the arm can push with; convex pairs yield one contact each (multi-point
 convex collision off, see ``_add_lights_and_table``).
 """
 
@@ -29,53 +27,24 @@ import mujoco
 import numpy as np
 
 from nf_core import panda_spec
+from nf_core.task_spec import Clamp, Fixture, TaskFileError, TaskSpec, load_task
 from sim_bridge_node.held_parts import HeldPart, add_gear, add_peg
 from sim_bridge_node.panda_model import CONTACT_MOVING, TIMESTEP, load_panda_spec
 
-TASKS = ("gear", "peg", "block", "free", "gear_clamp")
+TASKS = ("gear", "peg", "block", "free", "gear_clamp")  # the built-in ones; any task file is a task too
 
 # Contact model (all solid geoms): stiff, critically damped soft contacts.
 CONTACT_SOLREF = np.array([0.004, 1.0])  # time constant (>= 2 time steps), damping ratio
 CONTACT_SOLIMP = np.array([0.95, 0.99, 0.0005, 0.5, 2.0])
-CONTACT_FRICTION = np.array([0.4, 0.005, 0.0001])  # sliding, torsional, rolling
+CONTACT_FRICTION = np.array([0.4, 0.005, 0.0001])  # sliding (a task file sets its own), torsional, rolling
 CONTACT_CONDIM = 3
 
-# Fixture (shaft or hole) placement and geometry.
-FIXTURE_XY = np.array([0.5, 0.0])  # m, fixture axis in the table plane
-FIXTURE_TOP = 0.09  # m, z of the shaft's top face / the hole's mouth
-FIXTURE_BASE_HALF = 0.05  # m, half side of the square base block
-SHAFT_RADIUS = 0.014  # m (28 mm shaft)
-SHAFT_LENGTH = panda_spec.GEAR_DEPTH  # m, pin length above the shoulder = full insertion depth
-SHOULDER_RADIUS = 0.022  # m, the gear seats on it (bore 15 mm < 22 mm < outer 30 mm)
-HOLE_HALF_WIDTH = 0.0125  # m (25 mm square hole)
-HOLE_DEPTH = 0.020  # m
-HOLE_BLOCK_HALF = 0.04  # m, half side of the hole block
-
-# Start poses (hand pointing straight down, TCP 0.20 m above the fixture top, on its axis),
-# solved once by inverse kinematics from the Panda's "ready" posture; see tests/test_sim_scenes.py.
-START_HEIGHT = 0.20  # m above FIXTURE_TOP
-Q_MEAN_GEAR = np.array([0.0, -0.121374, 0.0, -2.258102, 0.0, 2.136727, 0.785398])
-Q_MEAN_PEG = np.array([0.0, -0.150447, 0.0, -2.209835, 0.0, 2.059387, 0.785398])
-
-# gear_clamp: a clamp jaw (box) across the approach, between the shaft's base block (x 0.45-0.55) and
-# the start, which lies further from the robot. It spans the whole y range of the starts and rises 8 cm
-# above the start's TCP, so the gear must be lifted over it: the straight line, and every path that
-# moves each coordinate monotonically from the start to the goal, hits it. It stands 5 cm off the base
-# block, so the gear can be lowered behind it and then approach the shaft as on the plain gear task.
-CLAMP_CENTER_X = 0.61  # m: the seated gear's rim (r = 30 mm) clears it by 7 cm
-CLAMP_HALF_THICKNESS = 0.01  # m (x)
-CLAMP_HALF_LENGTH = 0.10  # m (y), centred on the shaft axis
-CLAMP_TOP = 0.20  # m, z of its top face (11 cm above the shaft top, 8 cm above the start's TCP)
-START_TCP_GEAR_CLAMP = np.array([0.71, 0.0, 0.12])  # m: the gear's rim 6 cm behind the clamp, TCP 8 cm below its top
-START_STD_GEAR_CLAMP = 0.05  # rad per joint (TCP std ~1.5, 3, 1 cm in x, y, z); starts outside the region are redrawn
-# TCP box [lo, hi] of a sampled start: behind the clamp (the gear's rim >= 2 cm off it), below its top
-START_REGION_GEAR_CLAMP = np.array([
-    [CLAMP_CENTER_X + CLAMP_HALF_THICKNESS + panda_spec.GEAR_OUTER_RADIUS + 0.02, -0.06, FIXTURE_TOP + 0.01],
-    [0.76, 0.06, FIXTURE_TOP + 0.05],
-])
-# START_TCP_GEAR_CLAMP with the hand pointing down (as Q_MEAN_GEAR), by damped least squares from
-# Q_MEAN_GEAR (tests/test_gear_clamp.py checks the TCP)
-Q_MEAN_GEAR_CLAMP = np.array([0.0, 0.705731, 0.0, -1.523225, 0.0, 2.228955, 0.785398])
+# Fixture details a task file does not set (its sizes, place and the starts are the task file's:
+# nf_core.task_spec, config/tasks/).
+FIXTURE_BASE_HALF = 0.05  # m, least half side of the shaft's square base block
+HOLE_BLOCK_HALF = 0.04  # m, least half side of the hole block
+# Seed of the start's inverse kinematics: the gear task's start posture (hand down, elbow up).
+IK_SEED = np.array([0.0, -0.121374, 0.0, -2.258102, 0.0, 2.136727, 0.785398])  # rad
 
 # 2-D block insertion.
 BLOCK_SIZE = 0.05  # m, cube side
@@ -118,6 +87,8 @@ class Scene:
     start_std: float | None = None  # joint std of sampled starts (None: the environment's default)
     start_region: np.ndarray | None = None  # (2, 3) TCP box [lo, hi] a sampled start must lie in
     camera: dict = field(default_factory=dict)  # free camera for pictures: lookat, distance, ...
+    kind: str = ""  # gear | peg (the part) | block | free
+    spec: TaskSpec | None = None  # the task file it was built from (arm tasks)
 
 
 def _material(spec: mujoco.MjSpec) -> None:
@@ -221,29 +192,33 @@ def _cylinder(body: mujoco.MjsBody, name: str, radius: float, z0: float, z1: flo
     return geom
 
 
-def add_shaft(spec: mujoco.MjSpec) -> None:
-    """Stepped shaft: base block, shoulder, 28 mm pin (convex pieces: one box, two cylinders), its
-    top face at ``FIXTURE_TOP`` over ``FIXTURE_XY`` (``nf_bringup.testing.franky`` moves a copy)."""
+def add_shaft(spec: mujoco.MjSpec, fixture: Fixture | None = None) -> None:
+    """Stepped shaft: base block, shoulder, pin (convex pieces: one box, two cylinders), its top face at
+    the fixture's position (default: the gear task's; ``nf_bringup.testing.franky`` moves a copy)."""
+    fixture = fixture or Fixture()
+    x, y, top = fixture.position
     body = spec.worldbody.add_body()
     body.name = "shaft"
-    body.pos = [FIXTURE_XY[0], FIXTURE_XY[1], 0.0]
-    pin_bottom = FIXTURE_TOP - SHAFT_LENGTH
-    base_top = 0.04
-    half = FIXTURE_BASE_HALF
+    body.pos = [x, y, 0.0]
+    pin_bottom = top - fixture.shaft_length
+    base_top = min(0.04, pin_bottom - 0.005)
+    half = max(FIXTURE_BASE_HALF, fixture.shoulder_radius + 0.01)
     _box(body, "shaft_base", (half, half, 0.5 * base_top), (0.0, 0.0, 0.5 * base_top), FIXTURE_RGBA)
-    _cylinder(body, "shaft_shoulder", SHOULDER_RADIUS, base_top, pin_bottom, PIN_RGBA)
-    _cylinder(body, "shaft_pin", SHAFT_RADIUS, pin_bottom, FIXTURE_TOP, PIN_RGBA)
+    _cylinder(body, "shaft_shoulder", fixture.shoulder_radius, base_top, pin_bottom, PIN_RGBA)
+    _cylinder(body, "shaft_pin", fixture.shaft_radius, pin_bottom, top, PIN_RGBA)
 
 
-def _add_hole(spec: mujoco.MjSpec) -> None:
-    """Block with a 25 mm square hole, 20 mm deep: a base and four wall boxes."""
+def _add_hole(spec: mujoco.MjSpec, fixture: Fixture) -> None:
+    """Block with a square hole: a base and four wall boxes, the mouth at the fixture's position."""
+    x, y, top = fixture.position
     body = spec.worldbody.add_body()
     body.name = "hole"
-    body.pos = [FIXTURE_XY[0], FIXTURE_XY[1], 0.0]
-    bottom = FIXTURE_TOP - HOLE_DEPTH
-    a, b = HOLE_HALF_WIDTH, HOLE_BLOCK_HALF
+    body.pos = [x, y, 0.0]
+    bottom = top - fixture.hole_depth
+    a = fixture.hole_half_width
+    b = max(HOLE_BLOCK_HALF, a + 0.02)  # walls at least 2 cm thick
     _box(body, "hole_base", (b, b, 0.5 * bottom), (0.0, 0.0, 0.5 * bottom), FIXTURE_RGBA)
-    zc, hz = 0.5 * (bottom + FIXTURE_TOP), 0.5 * HOLE_DEPTH
+    zc, hz = 0.5 * (bottom + top), 0.5 * fixture.hole_depth
     wall = 0.5 * (b - a)
     _box(body, "hole_wall_px", (wall, b, hz), (a + wall, 0.0, zc), PIN_RGBA)
     _box(body, "hole_wall_nx", (wall, b, hz), (-a - wall, 0.0, zc), PIN_RGBA)
@@ -251,19 +226,21 @@ def _add_hole(spec: mujoco.MjSpec) -> None:
     _box(body, "hole_wall_ny", (a, wall, hz), (0.0, -a - wall, zc), PIN_RGBA)
 
 
-def add_clamp(spec: mujoco.MjSpec) -> None:
-    """The clamp jaw of ``gear_clamp``: one box from the table up to ``CLAMP_TOP`` across the approach."""
+def add_clamp(spec: mujoco.MjSpec, clamp: Clamp, fixture_y: float) -> None:
+    """The clamp jaw of a task with one: a box from the table up to its top, across the approach."""
     body = spec.worldbody.add_body()
     body.name = "clamp"
-    body.pos = [CLAMP_CENTER_X, FIXTURE_XY[1], 0.0]
-    _box(body, "clamp_jaw", (CLAMP_HALF_THICKNESS, CLAMP_HALF_LENGTH, 0.5 * CLAMP_TOP), (0.0, 0.0, 0.5 * CLAMP_TOP),
+    body.pos = [clamp.center_x, fixture_y, 0.0]
+    _box(body, "clamp_jaw", (clamp.half_thickness, clamp.half_length, 0.5 * clamp.top), (0.0, 0.0, 0.5 * clamp.top),
          FIXTURE_RGBA)
 
 
-def _arm_scene(task: str) -> Scene:
+def _arm_scene(task: TaskSpec, free: bool = False) -> Scene:
+    """The arm holding the task's part, the task's fixture (none when ``free``) and the table."""
     spec = load_panda_spec()
     hand = spec.body(panda_spec.HAND_FRAME)
-    held = add_peg(hand) if task == "peg" else add_gear(hand)
+    part = task.part
+    held = add_peg(hand, part) if part.kind == "peg" else add_gear(hand, part)
     for geom in spec.body(held.body).geoms:
         if geom.contype:
             contact_params(geom)
@@ -271,56 +248,91 @@ def _arm_scene(task: str) -> Scene:
         if body.name.startswith("panda_"):
             for geom in body.geoms:
                 contact_params(geom)
-    center = np.array([FIXTURE_XY[0], FIXTURE_XY[1], FIXTURE_TOP])
+    center = task.top
     _add_lights_and_table(spec, center)
     fixture = ""
-    if task in ("gear", "gear_clamp"):
-        add_shaft(spec)
+    if free:
+        pass
+    elif part.kind == "gear":
+        add_shaft(spec, task.fixture)
         fixture = "shaft"
-        if task == "gear_clamp":
-            add_clamp(spec)
+        if task.clamp is not None:
+            add_clamp(spec, task.clamp, task.fixture.position[1])
         # The closed fingertip pads reach 9.5 mm into the bore's upper end (they "hold" the gear
         # there); the pin passes between them at full depth instead of stopping on them.
         for finger in ("panda_leftfinger", "panda_rightfinger"):
             exclude = spec.add_exclude()
             exclude.bodyname1 = finger
             exclude.bodyname2 = "shaft"
-    elif task == "peg":
-        _add_hole(spec)
+    else:
+        _add_hole(spec, task.fixture)
         fixture = "hole"
+    if task.friction != CONTACT_FRICTION[0]:  # the task's sliding friction on every contact geom
+        for geom in spec.geoms:
+            if np.array_equal(geom.friction, CONTACT_FRICTION):
+                geom.friction = [task.friction, *CONTACT_FRICTION[1:]]
     _add_contact_sensor(spec, held.body)
     model = spec.compile()
-    q_mean = Q_MEAN_PEG if task == "peg" else Q_MEAN_GEAR
-    start_std, start_region = None, None
-    if task == "gear_clamp":
-        q_mean, start_std, start_region = Q_MEAN_GEAR_CLAMP, START_STD_GEAR_CLAMP, START_REGION_GEAR_CLAMP.copy()
-    goal = np.array([FIXTURE_XY[0], FIXTURE_XY[1], FIXTURE_TOP - SHAFT_LENGTH])
-    lateral = panda_spec.GEAR_BORE_RADIUS
-    if task == "peg":
-        goal = np.array([FIXTURE_XY[0], FIXTURE_XY[1], FIXTURE_TOP - HOLE_DEPTH])
-        lateral = HOLE_HALF_WIDTH
+    if task.start.joints is not None:
+        q_mean = np.asarray(task.start.joints, dtype=float)
+    else:
+        q_mean = start_joints(model, held.tcp_site, task.start_tcp)
+    start_region = None if task.start.region is None else np.array(task.start.region, dtype=float)
     camera = {"lookat": center + [0.0, 0.0, 0.03], "distance": 0.45, "azimuth": 145.0, "elevation": -24.0}
-    if task == "free":
+    if free:
         camera = {"lookat": np.array([0.25, 0.0, 0.35]), "distance": 1.7, "azimuth": 140.0, "elevation": -20.0}
     return Scene(
-        task=task,
+        task="free" if free else task.name,
         model=model,
         joint_names=panda_spec.JOINT_NAMES,
         actuator_names=tuple(f"{n}_motor" for n in panda_spec.JOINT_NAMES),
         tcp_site=held.tcp_site,
         held_body=held.body,
         fixture_body=fixture,
-        q_mean=q_mean.copy(),
-        goal_position=goal,
-        insertion_top=FIXTURE_TOP,
-        insertion_axis_xy=FIXTURE_XY.copy(),
-        lateral_tolerance=lateral,
-        success_depth=0.016,
+        q_mean=q_mean,
+        goal_position=task.goal_position,
+        insertion_top=float(task.top[2]),
+        insertion_axis_xy=task.top[:2].copy(),
+        lateral_tolerance=task.lateral_tolerance,
+        success_depth=task.success_depth,
         held_part=held,
-        start_std=start_std,
+        start_std=task.start.joint_std,
         start_region=start_region,
         camera=camera,
+        kind="free" if free else part.kind,
+        spec=task,
     )
+
+
+def start_joints(model: mujoco.MjModel, tcp_site: str, tcp: np.ndarray, seed: np.ndarray = IK_SEED,
+                 tolerance: float = 1e-5) -> np.ndarray:
+    """Joints (rad) that put ``tcp_site`` at ``tcp`` (m, world) with the hand pointing down
+    (``panda_spec.INSERTION_ROTATION``), by damped least squares on the scene's own kinematics from
+    ``seed``, within the joint limits. Raises ``TaskFileError`` when no such pose is found (out of reach)."""
+    names = panda_spec.JOINT_NAMES
+    qadr = np.array([model.joint(n).qposadr[0] for n in names])
+    vadr = np.array([model.joint(n).dofadr[0] for n in names])
+    lo, hi = model.jnt_range[[model.joint(n).id for n in names]].T
+    site = model.site(tcp_site).id
+    data = mujoco.MjData(model)
+    jacp, jacr = np.zeros((3, model.nv)), np.zeros((3, model.nv))
+    goal_rot = panda_spec.INSERTION_ROTATION
+    q = np.asarray(seed, dtype=float).copy()
+    for _ in range(500):
+        data.qpos[qadr] = q
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_comPos(model, data)
+        rot = data.site_xmat[site].reshape(3, 3)
+        turn = 0.5 * sum(np.cross(rot[:, k], goal_rot[:, k]) for k in range(3))
+        err = np.concatenate([tcp - data.site_xpos[site], turn])
+        if np.linalg.norm(err[:3]) < tolerance and np.linalg.norm(err[3:]) < 10 * tolerance:
+            return q
+        mujoco.mj_jacSite(model, data, jacp, jacr, site)
+        jac = np.vstack([jacp[:, vadr], jacr[:, vadr]])
+        q = np.clip(q + jac.T @ np.linalg.solve(jac @ jac.T + 1e-6 * np.eye(6), err), lo, hi)
+    raise TaskFileError(f"no joint configuration puts the start's TCP at {np.round(tcp, 3).tolist()} m with the hand "
+                        f"pointing down (left {np.linalg.norm(err[:3]) * 1e3:.1f} mm, "
+                        f"{np.rad2deg(np.linalg.norm(err[3:])):.1f} deg off): the start is out of the arm's reach")
 
 
 def _block_scene(plane: str) -> Scene:
@@ -398,14 +410,46 @@ def _block_scene(plane: str) -> Scene:
         insertion_axis_xy=np.zeros(2),
         lateral_tolerance=0.5 * SLOT_WIDTH,
         success_depth=0.025,
+        kind="block",
         camera={"lookat": np.array([0.03, 0.0, 0.12]), "distance": 0.55, "azimuth": 75.0, "elevation": -18.0},
     )
 
 
-def build_scene(task: str, *, plane: str = "vertical") -> Scene:
-    """Compile the scene for ``task`` (one of ``TASKS``); ``plane`` applies to the block task."""
-    if task not in TASKS:
-        raise ValueError(f"unknown task {task!r}; expected one of {TASKS}")
+def build_scene(task: str | TaskSpec, *, plane: str = "vertical") -> Scene:
+    """Compile the scene of ``task``: a task file (a built-in name such as ``gear``, a path, or a loaded
+    ``TaskSpec``), ``block`` or ``free``; ``plane`` applies to the block task. Raises ``ValueError``
+    (``TaskFileError``) for an unknown task or a file that cannot be right, with the reason."""
+    if isinstance(task, TaskSpec):
+        return _arm_scene(task)
     if task == "block":
         return _block_scene(plane)
-    return _arm_scene(task)
+    if task == "free":
+        return _arm_scene(load_task("gear"), free=True)
+    return _arm_scene(load_task(task))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m sim_bridge_node.scenes TASK``: build a task's scene and print what it holds, or why not."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m sim_bridge_node.scenes", description=main.__doc__)
+    ap.add_argument("task", help="a built-in task (gear, peg, gear_clamp, block, free) or the path of a task file")
+    args = ap.parse_args(argv)
+    try:
+        scene = build_scene(args.task)
+    except ValueError as e:
+        print(f"refused: {e}")
+        return 1
+    print(f"task {scene.task}: {scene.kind}, {scene.model.nbody} bodies, {scene.model.ngeom} geoms")
+    if scene.spec is not None:
+        spec = scene.spec
+        print(f"  part: {spec.part.text()} (TCP {np.round(scene.held_part.tcp_in_hand, 4).tolist()} m in the hand)")
+        print(f"  fixture mouth {np.round(spec.top, 4).tolist()} m, goal (seated TCP) "
+              f"{np.round(scene.goal_position, 4).tolist()} m, success at {spec.success_depth * 1e3:g} mm, "
+              f"friction {spec.friction:g}")
+        print(f"  start TCP {np.round(spec.start_tcp, 4).tolist()} m, joints {np.round(scene.q_mean, 6).tolist()} rad")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

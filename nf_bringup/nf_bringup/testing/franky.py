@@ -151,29 +151,35 @@ def default_fixture_mouth() -> np.ndarray:
     return DriverConfig().fixture_position.copy()
 
 
-def gear_task_elements(mouth_in_world: np.ndarray) -> tuple[ET.Element, ET.Element]:
+def gear_task_elements(mouth_in_world: np.ndarray, task: str = "gear") -> tuple[ET.Element, ET.Element]:
     """(gear body for the hand, shaft body for the world) as MJCF elements, built by our gear
-    scene's own builders and moved so the pin's top face is at ``mouth_in_world``."""
+    scene's own builders from ``task`` (a gear task file) and moved so the pin's top face is at
+    ``mouth_in_world``."""
     import mujoco
 
+    from nf_core.task_spec import load_task
     from sim_bridge_node import scenes
     from sim_bridge_node.held_parts import add_gear
 
+    cell = load_task(task)
+    if cell.kind != "gear":
+        raise ValueError(f"franky-sim's cell holds a gear task; {task!r} is a {cell.kind} task")
     spec = mujoco.MjSpec()
     hand = spec.worldbody.add_body()
     hand.name = "hand"
-    part = add_gear(hand)
+    part = add_gear(hand, cell.part)
     for geom in spec.body(part.body).geoms:  # as the gear scene does for the held part
         if geom.contype:
             scenes.contact_params(geom)
-    scenes.add_shaft(spec)  # base block, shoulder, pin; top face at FIXTURE_TOP over FIXTURE_XY
+            geom.friction[0] = cell.friction
+    scenes.add_shaft(spec, cell.fixture)  # base block, shoulder, pin; top face at the file's position
     root = ET.fromstring(spec.to_xml())
     gear = root.find(f".//body[@name='{part.body}']")
     shaft = root.find(f".//body[@name='{SHAFT_BODY}']")
     if gear is None or shaft is None:
         raise RuntimeError("the gear scene's builders made no gear or shaft body")
     gear.set("childclass", "main")  # not franky-sim's "fr3" class defaults (site group etc.)
-    shift = np.asarray(mouth_in_world, float) - np.array([*scenes.FIXTURE_XY, scenes.FIXTURE_TOP])
+    shift = np.asarray(mouth_in_world, float) - cell.top
     pos = np.fromstring(shaft.get("pos", "0 0 0"), sep=" ") + shift
     shaft.set("pos", " ".join(f"{v:.6g}" for v in pos))
     return gear, shaft
