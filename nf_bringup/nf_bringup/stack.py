@@ -108,6 +108,29 @@ def node_commands(configs: Sequence[Path], run_dir: Path, iterations: int | None
     return cmds
 
 
+def task_parameters(task: str, run_dir: Path) -> Path:
+    """Where ``--task`` puts its parameters overlay (``task`` and ``held_part`` for every node), after
+    checking the task. Raises ``ValueError`` (``TaskFileError``) with the reason for a task that cannot be."""
+    from nf_core.task_spec import load_task
+
+    load_task(task)
+    return run_dir / "task_parameters.yaml"
+
+
+def write_task_parameters(task: str, run_dir: Path) -> Path:
+    """Copy ``task``'s file into the run folder (``task.yaml``: the run keeps the cell it learned) and write
+    the overlay that gives every node that file and its part (``task_parameters.yaml``)."""
+    from nf_core.task_spec import load_task, task_path
+
+    spec = load_task(task)
+    copy = run_dir / "task.yaml"
+    copy.write_text(task_path(task).read_text())
+    overlay = run_dir / "task_parameters.yaml"
+    overlay.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"task": str(copy.resolve()),
+                                                                   "held_part": spec.part.text()}}}))
+    return overlay
+
+
 def read_iterations(configs: Sequence[Path]) -> int:
     """The learner's ``iterations`` as the files give it (the last that sets it; else the default)."""
     from learner_node.config import TrainConfig
@@ -146,6 +169,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--config", type=Path, action="append", default=None, metavar="FILE",
                         help="task file, then overlays (repeatable, later files win; default config/gear_learn.yaml); "
                              "config/sim.yaml beside it comes first")
+    parser.add_argument("--task", default=None, metavar="TASK",
+                        help="the part and cell: a built-in task (gear, peg, gear_clamp) or a task file "
+                             "(config/tasks/README.md); default: the parameters file's")
     parser.add_argument("--iterations", type=int, default=None, help="PPO iterations (default: the task file's)")
     parser.add_argument("--out", type=Path, default=None, help="run folder (default runs/<date-time>)")
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: from the environment)")
@@ -181,7 +207,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         from_checkpoint = from_checkpoint_args(args.from_checkpoint, run_dir)
     except ValueError as exc:
         parser.error(str(exc))
+    task_overlay = None
+    if args.task is not None:
+        try:
+            task_overlay = task_parameters(args.task, run_dir)
+        except ValueError as exc:
+            parser.error(str(exc))
+        args.config.append(task_overlay)
     run_dir.mkdir(parents=True, exist_ok=True)
+    if task_overlay is not None:
+        write_task_parameters(args.task, run_dir)
     stop_on_signals()
     domain_id = args.domain_id
     if domain_id is None:  # the caller's, else one of its own
