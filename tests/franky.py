@@ -25,12 +25,15 @@ class DriverRig:
     compensation off, as on a Franka) behind a ControllerHost, and a FrankaDriverLoop on a thread.
 
     ``spec``: the arm description the controller uses instead of the identified one (to measure a
-    wrong description, which the driver itself refuses); ``identification`` is still the robot's."""
+    wrong description, which the driver itself refuses); ``identification`` is still the robot's.
+    ``law``: the controller's torque law (default: the law's defaults, gravity compensation off)."""
 
     def __init__(self, idle_mode: str = "hold", config: DriverConfig | None = None,
-                 spec: ArmSpec | None = None) -> None:
+                 spec: ArmSpec | None = None, law: TorqueLawConfig | None = None) -> None:
         import pylibfranka as franka
 
+        if law is not None and law.gravity_compensation:
+            raise ValueError("the robot adds gravity itself: the law's gravity_compensation must be off")
         self.franka = franka
         def connect() -> object:  # this thread keeps its scheduling (libfranka's Robot() sets FIFO 99)
             return open_robot(lambda: franka.Robot(HOST, franka.RealtimeConfig.kIgnore))
@@ -40,7 +43,7 @@ class DriverRig:
         self.identification = identify("auto", state, robot.load_model())
         self.spec = spec = spec or self.identification.spec
         self.arm = spec.arm_model(panda_spec.GEAR_PART)
-        self.loop = ControlLoop(self.arm, TorqueLawConfig(gravity_compensation=False),
+        self.loop = ControlLoop(self.arm, law or TorqueLawConfig(gravity_compensation=False),
                                 LoopConfig(idle_mode=idle_mode, max_consecutive_misses=0),
                                 joint_names=spec.joint_names)
         spec.fit_loop(self.loop)  # as nf_franka_stack does

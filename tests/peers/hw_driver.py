@@ -5,13 +5,21 @@ itself, as Franka's driver does. ``effort`` reports the command it applies (defa
 ``--effort measured``, the joint torque the arm applies, gravity included (franka_ros2's convention:
 libfranka's tau_J). No reset service, no task status, no stamp handshake.
 
+``SIGUSR1`` stops the state stream (and the next one resumes it) while the arm runs on under the
+last command that came in, as when a driver's state path hangs; each switch logs one JSON line:
+``{"joint_states": "off"|"on", "q": [...], "dq": [...], "command": [...], "zero_after": s}``
+(panda_joint1..7 order, rad, rad/s, the command applied on top of gravity in Nm; when back on, the
+wall time from off to the first tick whose command was all zero, null if none was).
+
 Run: python tests/peers/hw_driver.py [--effort command|measured]   (stops on SIGINT)
 """
 
 from __future__ import annotations
 
+import json
 import signal
 import threading
+import time
 
 import mujoco
 import numpy as np
@@ -37,6 +45,10 @@ class HardwareLikeDriver(Node):
         self.env.reset()
         self.names = [self.env.scene.joint_names[i] for i in ORDER]
         self.command = np.zeros(7)
+        self.publishing = True  # joint_states go out (SIGUSR1 switches, see switch_states)
+        self.switch_asked = False
+        self._off_since = 0.0  # monotonic s when the states stopped
+        self._zero_after: float | None = None  # s from then to the first all-zero command
         self._g_data = mujoco.MjData(self.env.model)
         m = self.env.model
         self._vadr = np.array([m.joint(n).dofadr[0] for n in self.env.scene.joint_names])
@@ -49,10 +61,26 @@ class HardwareLikeDriver(Node):
         if data.shape == (7,) and np.all(np.isfinite(data)):
             self.command = data
 
+    def switch_states(self) -> None:
+        """From the signal handler: stop (or resume) joint_states at the next tick."""
+        self.switch_asked = True
+
     def tick(self) -> None:
         env = self.env
+        now = time.monotonic()
+        if self.switch_asked:
+            self.switch_asked = False
+            self.publishing = not self.publishing
+            print(json.dumps({"joint_states": "on" if self.publishing else "off", "q": env.q.tolist(),
+                              "dq": env.dq.tolist(), "command": self.command.tolist(),
+                              "zero_after": self._zero_after if self.publishing else None}), flush=True)
+            self._off_since, self._zero_after = now, None
+        if not self.publishing and self._zero_after is None and not np.any(self.command):
+            self._zero_after = now - self._off_since
         gravity = self._gravity()
         env.step(np.clip(self.command + gravity, -env.torque_limits, env.torque_limits))
+        if not self.publishing:
+            return
         msg = JointState()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.name = self.names
@@ -82,6 +110,7 @@ def main() -> None:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = HardwareLikeDriver(measured=args.effort == "measured")
+    signal.signal(signal.SIGUSR1, lambda *_: node.switch_states())
     ex = EventsExecutor()
     ex.add_node(node)
     while not stop.is_set():
