@@ -122,6 +122,8 @@ def test_a_users_peg_file_builds_its_hole_and_seats(tmp_path):
     ({"fixture": {"postion": [0.5, 0.0, 0.09]}}, r"unknown key\(s\) \['postion'\]"),
     ({"fixture": {"position": [0.5, 0.0]}}, "position must be 3 finite numbers"),
     ({"part": {"kind": "bolt"}}, "kind must be one of"),
+    ({"randomise": {"fixture_position": [0.05, 0.0, 0.0]}}, r"half-ranges must be in \[0, 0.02\] m"),
+    ({"randomise": {"friction": [0.6, 0.3]}}, "friction must be a range"),
 ])
 def test_a_file_that_cannot_be_right_is_refused_with_the_reason(tmp_path, change, reason):
     with pytest.raises(TaskFileError, match=reason):
@@ -167,3 +169,29 @@ def test_the_builtin_files_are_the_built_in_parts_and_scenes():
     # the clamp task's jaw is there; the gear task has none
     assert mujoco.mj_name2id(build_scene("gear_clamp").model, mujoco.mjtObj.mjOBJ_GEOM, "clamp_jaw") >= 0
     assert mujoco.mj_name2id(build_scene("gear").model, mujoco.mjtObj.mjOBJ_GEOM, "clamp_jaw") == -1
+
+
+def test_randomise_varies_the_cell_per_episode_seed_and_keeps_what_the_controller_is_told(tmp_path):
+    path = write_task(tmp_path, {"randomise": {"fixture_position": [0.003, 0.003, 0.002], "friction": [0.3, 0.6],
+                                               "part_mass": [0.1, 0.15]}})
+    env = InsertionEnv(str(path))
+    m = env.model
+    pin, gear, seg = m.geom("shaft_pin").id, m.body("gear").id, m.geom("gear_segment_0").id
+    env.reset()  # the fixed start: the file's nominal cell
+    pin0, goal = env.data.geom_xpos[pin].copy(), env.goal_position
+    assert not env.episode_task.fixture_offset.any() and m.body_mass[gear] == pytest.approx(0.12)
+    draws = {}
+    for seed in (5, 6, 5):
+        env.reset(seed)
+        d = env.episode_task
+        np.testing.assert_allclose(env.data.geom_xpos[pin], pin0 + d.fixture_offset, atol=1e-12)
+        assert m.geom_friction[pin, 0] == m.geom_friction[seg, 0] == d.friction and 0.3 <= d.friction <= 0.6
+        assert m.body_mass[gear] == pytest.approx(d.part_mass) and 0.1 <= d.part_mass <= 0.15
+        assert np.all(np.abs(d.fixture_offset) <= [0.003, 0.003, 0.002]) and d.fixture_offset.any()
+        np.testing.assert_array_equal(env.goal_position, goal)  # the controller is told the nominal cell
+        draws.setdefault(seed, []).append((tuple(d.fixture_offset), d.friction, d.part_mass))
+    assert draws[5][0] == draws[5][1] and draws[5][0] != draws[6][0]
+    # success is measured on the fixture where it is: a push down the moved axis seats the gear
+    env.reset(5)
+    result = run_insertion(env, offset=env.episode_task.fixture_offset, seconds=3.0)
+    assert result["success"] and result["depth"] >= 0.019, result

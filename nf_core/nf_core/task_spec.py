@@ -150,6 +150,45 @@ class Starts:
     region: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None  # m, [lo, hi]
 
 
+TASK_STREAM = 31  # second word of a draw's seed: the task randomisation's own random stream
+
+
+@dataclass(frozen=True)
+class TaskDraw:
+    """One episode's variation of the cell: what the simulator changes, and what the controller is not told."""
+
+    fixture_offset: np.ndarray  # m (x, y, z), added to the fixture's position
+    friction: float  # sliding friction coefficient of every contact
+    part_mass: float  # kg (the part's inertia scales with it)
+
+
+@dataclass(frozen=True)
+class Randomise:
+    """Per-episode variation of the cell, drawn from the episode's start seed (uniform): the fixture's
+    position error (half-ranges, m), the contact friction and the part's mass (ranges; None: the file's)."""
+
+    fixture_position: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m, +- per axis
+    friction: tuple[float, float] | None = None
+    part_mass: tuple[float, float] | None = None  # kg
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any episode differs from the file's nominal cell."""
+        return any(self.fixture_position) or self.friction is not None or self.part_mass is not None
+
+    def draw(self, seed: int | None, friction: float, mass: float) -> TaskDraw:
+        """The variation of the episode with start seed ``seed`` (None or < 0: the nominal cell), around the
+        file's ``friction`` and ``mass``; from ``default_rng([seed, TASK_STREAM])``."""
+        if seed is None or seed < 0:
+            return TaskDraw(np.zeros(3), friction, mass)
+        rng = np.random.default_rng([int(seed), TASK_STREAM])
+        half = np.asarray(self.fixture_position, dtype=float)
+        offset = rng.uniform(-half, half)
+        mu = rng.uniform(*self.friction) if self.friction is not None else friction
+        m = rng.uniform(*self.part_mass) if self.part_mass is not None else mass
+        return TaskDraw(offset, float(mu), float(m))
+
+
 @dataclass(frozen=True)
 class TaskSpec:
     """One task file, loaded and checked."""
@@ -161,6 +200,7 @@ class TaskSpec:
     success_depth: float = 0.016  # m inserted that counts as success
     start: Starts = field(default_factory=Starts)
     clamp: Clamp | None = None
+    randomise: Randomise = field(default_factory=Randomise)
     source: str = ""  # the file it was loaded from
 
     @property
@@ -258,7 +298,7 @@ def task_from_dict(data: dict, name: str = "task", source: str = "") -> TaskSpec
     if not isinstance(data, dict):
         raise TaskFileError(f"{where}: a task file is a mapping of keys (part, fixture, ...), "
                             f"got {type(data).__name__}")
-    _known(data, ("part", "fixture", "friction", "success_depth", "start", "clamp"), where)
+    _known(data, ("part", "fixture", "friction", "success_depth", "start", "clamp", "randomise"), where)
     part = _part(dict(data.get("part") or {}), f"{where}: part")
     fx = dict(data.get("fixture") or {})
     if part.kind == "peg":
@@ -272,10 +312,12 @@ def task_from_dict(data: dict, name: str = "task", source: str = "") -> TaskSpec
     start = _build(Starts, dict(data.get("start") or {}), f"{where}: start",
                    vectors={"tcp": 3, "joints": 7, "region": (2, 3)})
     clamp = _build(Clamp, dict(data["clamp"]), f"{where}: clamp") if data.get("clamp") else None
+    randomise = _build(Randomise, dict(data.get("randomise") or {}), f"{where}: randomise",
+                       vectors={"fixture_position": 3, "friction": 2, "part_mass": 2})
     spec = TaskSpec(name=name, part=part, fixture=fixture,
                     friction=_number(data.get("friction", 0.4), f"{where}: friction"),
                     success_depth=_number(data.get("success_depth", 0.016), f"{where}: success_depth"),
-                    start=start, clamp=clamp, source=source)
+                    start=start, clamp=clamp, randomise=randomise, source=source)
     check_task(spec)
     return spec
 
@@ -387,5 +429,13 @@ def check_task(spec: TaskSpec) -> None:
     if s[2] < top[2] + START_CLEARANCE:
         raise TaskFileError(f"{where}: the start (TCP z {s[2]:g} m) is not above the fixture's top ({top[2]:g} m "
                             f"+ {START_CLEARANCE * 1e3:g} mm): it would start inside the fixture")
+    r = spec.randomise
+    if any(not 0.0 <= h <= 0.02 for h in r.fixture_position):
+        raise TaskFileError(f"{where}: randomise: fixture_position half-ranges must be in [0, 0.02] m, "
+                            f"got {list(r.fixture_position)}")
+    for key, rng, lo, hi in (("friction", r.friction, 0.0, 2.0), ("part_mass", r.part_mass, 0.0, 100.0)):
+        if rng is not None and not lo < rng[0] <= rng[1] <= hi:
+            raise TaskFileError(f"{where}: randomise: {key} must be a range [lo, hi] with {lo:g} < lo <= hi <= {hi:g}, "
+                                f"got {list(rng)}")
     if spec.start.joint_std is not None and not 0.0 <= spec.start.joint_std <= 0.5:
         raise TaskFileError(f"{where}: start: joint_std must be in [0, 0.5] rad, got {spec.start.joint_std:g}")

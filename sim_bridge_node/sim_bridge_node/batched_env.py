@@ -48,7 +48,8 @@ class BatchedEnv:
         if n_envs < 1 or n_threads < 1:
             raise ValueError(f"n_envs and n_threads must be >= 1, got {n_envs}, {n_threads}")
         scene = build_scene(task, plane=plane)
-        own = friction is not None and friction.enabled  # per-episode friction lives in the model
+        # per-episode friction and cell variations live in the model
+        own = (friction is not None and friction.enabled) or (scene.spec is not None and scene.spec.randomise.enabled)
         self.envs = [InsertionEnv(scene=dataclasses.replace(scene, model=copy.copy(scene.model)) if own else scene,
                                   start_std=start_std) for _ in range(n_envs)]
         if own:

@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from nf_core.friction import FrictionRanges
+from nf_core.task_spec import TaskDraw
 from sim_bridge_node.scenes import BLOCK_START_STD, CONTACT_FORCE_SENSOR, Scene, build_scene
 
 ARM_START_STD = 0.2  # rad, per joint (the paper's simulated peg-in-hole start distribution)
@@ -130,6 +131,15 @@ class InsertionEnv:
         self._base_damping = m.dof_damping[self._vadr].copy()  # the scene's own (panda_spec.JOINT_DAMPING)
         self.friction_ranges = FrictionRanges()  # off: a reset leaves the model alone
         self.episode_friction: tuple[np.ndarray, np.ndarray] | None = None  # (Coulomb, added viscous) drawn
+        self._axis_xy, self._top = self.scene.insertion_axis_xy.copy(), self.scene.insertion_top  # this episode's
+        spec = self.scene.spec
+        self.randomise = spec.randomise if spec is not None and spec.randomise.enabled else None
+        self.episode_task: TaskDraw | None = None  # the cell's variation drawn for this episode
+        if self.randomise is not None:  # the nominal values the draws vary
+            self._fixture = m.body(self.scene.fixture_body).id
+            self._fixture_pos0 = m.body_pos[self._fixture].copy()
+            self._contact_geoms = np.flatnonzero(m.geom_friction[:, 0] == spec.friction)
+            self._held_mass0, self._held_inertia0 = m.body_mass[self._held].copy(), m.body_inertia[self._held].copy()
         self._ctrl = self.data.ctrl  # view into MjData, reused every step
         self.last_torque = np.zeros(m.nu)
         self.reset()
@@ -199,6 +209,9 @@ class InsertionEnv:
         """Start a new episode at ``q`` (if given), the fixed start, or a start drawn with ``seed``.
         With friction ranges on, the episode's friction is drawn from ``seed`` (None or < 0: the
         ranges' middles) and set before the start state; a refused start changes neither."""
+        if self.randomise is not None:  # the cell first: the start is checked against this episode's fixture
+            spec = self.scene.spec
+            self._set_cell(self.randomise.draw(seed, spec.friction, spec.part.mass))
         if q is not None:
             q0 = self._checked_vector(q, self.nq, "start configuration")
             problem = self._start_problem(q0, require_above=False)
@@ -214,6 +227,19 @@ class InsertionEnv:
             self.episode_friction = (coulomb, viscous)
         self._set_state(q0)
         return self.observation()
+
+    def _set_cell(self, draw: TaskDraw) -> None:
+        """Put this episode's variation of the cell into the model: the fixture moved, the contacts'
+        friction, the part's mass and inertia. What the controller is given (the goal) stays nominal."""
+        m, spec = self.model, self.scene.spec
+        m.body_pos[self._fixture] = self._fixture_pos0 + draw.fixture_offset
+        m.geom_friction[self._contact_geoms, 0] = draw.friction
+        scale = draw.part_mass / spec.part.mass
+        m.body_mass[self._held] = self._held_mass0 * scale
+        m.body_inertia[self._held] = self._held_inertia0 * scale
+        self._axis_xy = self.scene.insertion_axis_xy + draw.fixture_offset[:2]
+        self._top = self.scene.insertion_top + float(draw.fixture_offset[2])
+        self.episode_task = draw
 
     def sample_start(self, seed: int) -> np.ndarray:
         """The start configuration ``reset(seed)`` would use (deterministic per seed)."""
@@ -235,7 +261,7 @@ class InsertionEnv:
             names = self.model.geom
             pairs = {(names(g1).name, names(g2).name) for g1, g2 in zip(c.geom1, c.geom2, strict=True)}
             return f"in collision: {sorted(pairs)}"
-        if require_above and self.data.site_xpos[self._site, 2] < self.scene.insertion_top + START_CLEARANCE:
+        if require_above and self.data.site_xpos[self._site, 2] < self._top + START_CLEARANCE:
             return "TCP not above the fixture"
         region = self.scene.start_region
         if require_above and region is not None:
@@ -349,13 +375,13 @@ class InsertionEnv:
     def insertion_depth(self) -> float:
         """How far the TCP is below the fixture mouth while inside the opening (m, >= 0)."""
         tcp = self.data.site_xpos[self._site]
-        lateral = np.abs(tcp[:2] - self.scene.insertion_axis_xy)
+        lateral = np.abs(tcp[:2] - self._axis_xy)
         inside = np.hypot(*lateral) < self.scene.lateral_tolerance
         if self.scene.kind == "peg":
             inside = bool(np.max(lateral) < self.scene.lateral_tolerance)
         elif self.task == "block":
             inside = bool(lateral[0] < self.scene.lateral_tolerance)
-        depth = self.scene.insertion_top - tcp[2]
+        depth = self._top - tcp[2]
         return float(max(depth, 0.0)) if inside else 0.0
 
     @property
