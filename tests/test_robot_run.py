@@ -35,6 +35,21 @@ def test_franky_gets_the_cells_goal_once_for_both_nodes(tmp_path):
     assert _value(cmds["learner"], "learner_node:policy_subscribers") == "2" and "recorder" in cmds
 
 
+def test_a_task_file_gives_the_cell_and_its_goal_to_both_nodes(tmp_path, capsys):
+    task = Path(__file__).resolve().parents[1] / "config" / "tasks" / "examples" / "gear_side_fixture.yaml"
+    args = _parse(["--task", str(task), "--out", str(tmp_path)])
+    cmds = robot_commands(args, tmp_path, record=False)
+    goal = "[0.42,0.18,0.09999999999999999]"  # the seated pose: 2 cm of pin below the mouth at z 0.12
+    assert _value(cmds["arm"], "franka_driver:goal") == _value(cmds["learner"], "learner_node:goal") == goal
+    assert _value(cmds["arm"], "franka_driver:fixture_position") == "[0.42,0.18,0.12]"
+    assert _value(cmds["arm"], "franka_driver:start_position") == "[0.42,0.18,0.27]"
+    assert _value(cmds["arm"], "franka_driver:success_depth") == "0.016"
+    assert _value(cmds["arm"], "held_part") == "gear" and _value(cmds["learner"], "task") == str(task)
+    with pytest.raises(SystemExit):  # a peg task is not a Franka gear cell
+        _parse(["--task", "peg", "--out", str(tmp_path)])
+    assert "the Franka cell holds a gear task" in capsys.readouterr().err
+
+
 def test_the_arms_controller_gets_no_law_of_its_own(tmp_path):
     """The force bound and gains travel with the policy (its law): the Franka stack's command sets none."""
     cmds = robot_commands(_parse([*CONFIGS, "--out", str(tmp_path)]), tmp_path, record=False)

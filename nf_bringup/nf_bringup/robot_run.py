@@ -101,6 +101,7 @@ def robot_commands(args: argparse.Namespace, run_dir: Path, record: bool) -> dic
            "-p", f"franka_driver:goal:={goal}"]
     if franky:  # a simulator: any kernel, and reflexes recovered without a person
         arm += ["-p", "franka_driver:realtime:=ignore", "-p", "franka_driver:automatic_error_recovery:=true"]
+    arm += cell_parameters(args.task) if args.task else []
     learner = [py, "-m", "learner_node.node", "--ros-args", "--params-file", str(args.config),
                *(["--params-file", str(args.arm_settings)] if arm_settings_apply(args) else []),
                "-p", f"learner_node:goal:={goal}", "-p", f"learner_node:out_dir:={run_dir / 'learner'}",
@@ -108,11 +109,36 @@ def robot_commands(args: argparse.Namespace, run_dir: Path, record: bool) -> dic
                "-p", f"learner_node:on_safe_hold:={'auto' if franky else 'wait'}",
                "-p", f"learner_node:policy_subscribers:={2 if record else 1}",
                "-p", f"learner_node:stiffness_floor:={float(args.stiffness_floor)!r}",
-               *from_checkpoint_args(args.from_checkpoint, run_dir), *args.learner_arg]
+               *from_checkpoint_args(args.from_checkpoint, run_dir),
+               *(["-p", f"task:={task_argument(args.task)}"] if args.task else []), *args.learner_arg]
     cmds = {"arm": arm, "learner": learner}
     if record:
         cmds["recorder"] = [py, "-m", "nf_bags.record", "-o", str(run_dir / "bag")]
     return cmds
+
+
+def task_argument(task: str) -> str:
+    """A task as the nodes get it: a built-in name, or a file's absolute path."""
+    from nf_core.task_spec import task_path
+
+    return task if task_path(task).stem == task else str(task_path(task).resolve())
+
+
+def cell_parameters(task: str) -> list[str]:
+    """The Franka stack's cell from a gear task file: the part in the hand, the fixture's mouth, the start
+    of the reset motion, what counts as inside the fixture and as success (overriding the hardware file)."""
+    from nf_core.task_spec import load_task
+
+    spec = load_task(task)
+
+    def floats(v) -> str:
+        return "[" + ",".join(repr(float(x)) for x in v) + "]"
+
+    return ["-p", f"held_part:={spec.part.text()}",
+            "-p", f"franka_driver:fixture_position:={floats(spec.top)}",
+            "-p", f"franka_driver:start_position:={floats(spec.start_tcp)}",
+            "-p", f"franka_driver:fixture_radius:={spec.lateral_tolerance!r}",
+            "-p", f"franka_driver:success_depth:={spec.success_depth!r}"]
 
 
 def arm_settings_apply(args: argparse.Namespace) -> bool:
@@ -163,7 +189,11 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--goal", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                         help="the insertion goal in the robot's base frame, m (franky: 0.5 0 0.05; a real cell: "
                              "measure it)")
-    parser.add_argument("--config", type=Path, default=Path("config/gear_learn.yaml"), help="the task file")
+    parser.add_argument("--config", type=Path, default=Path("config/gear_learn.yaml"), help="the learner's settings")
+    parser.add_argument("--task", default=None, metavar="TASK",
+                        help="a gear task file (config/tasks/README.md): the cell (part, fixture, start, success) and, "
+                             "unless --goal is given, the goal (its seated pose); on franky the simulated cell is "
+                             "built from it. Default: config/franka.yaml's cell")
     parser.add_argument("--hardware-config", type=Path, default=HARDWARE_CONFIG, help="the Franka stack's file")
     parser.add_argument("--arm-settings", type=Path, default=ARM_SETTINGS,
                         help="the learner's settings for an arm's one start, over the task file (from scratch "
@@ -215,6 +245,17 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
         from_checkpoint_args(args.from_checkpoint, args.out)  # a missing file fails here, before anything moves
     except ValueError as exc:
         parser.error(str(exc))
+    if args.task is not None:
+        from nf_core.task_spec import load_task
+
+        try:
+            spec = load_task(args.task)
+        except ValueError as exc:
+            parser.error(str(exc))
+        if spec.kind != "gear":
+            parser.error(f"the Franka cell holds a gear task; {args.task} is a {spec.kind} task")
+        if args.goal is None:
+            args.goal = spec.goal_position.tolist()
     if args.goal is None:
         if args.robot != FRANKY:
             parser.error("a real arm needs --goal X Y Z: the insertion goal measured on its cell")
@@ -250,7 +291,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             from .testing.franky import FrankySim
 
             (run_dir / "logs").mkdir(parents=True, exist_ok=True)
-            sim = FrankySim(run_dir / "logs" / "franky-sim.log", gear=True, gear_load=True)
+            sim = FrankySim(run_dir / "logs" / "franky-sim.log", gear=True, gear_load=True, task=args.task)
             print("[run] franky-sim up on 127.0.0.1 (FR3, gear cell)", flush=True)
         if record:
             procs["recorder"] = ManagedProcess("recorder", cmds["recorder"], env, run_dir / "logs",

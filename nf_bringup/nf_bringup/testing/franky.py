@@ -4,7 +4,7 @@ scene is compiled.
 
     python -m nf_bringup.testing.franky                  # as `franky-sim -s mujoco --hostname 127.0.0.1`
     python -m nf_bringup.testing.franky --frictionless
-    python -m nf_bringup.testing.franky --gear [--gear-load] [--frictionless]
+    python -m nf_bringup.testing.franky --gear [--gear-load] [--frictionless] [--task FILE]
     kill -USR1 <its PID>                                 # a reflex: the running motion is aborted
 
     with FrankySim(Path("franky-sim.log"), gear=True) as sim:   # then connect pylibfranka to 127.0.0.1
@@ -15,8 +15,9 @@ The launcher builds franky-sim's simulator with its own public classes, in its c
 spring short by friction / stiffness, which would hide the controller's own free-space error.
 ``--gear`` adds our gear scene's shaft (its mouth at the driver's default ``fixture_position``) and
 welds the gear to the hand, built by the same builders as our MuJoCo scenes so the numbers agree;
-franky-sim's own geoms touch neither. ``--gear-load`` also gives the gear to franky-sim's gravity
-compensation as the end-effector load, as Desk's settings do on a real arm.
+franky-sim's own geoms touch neither. ``--task`` builds that cell from a gear task file instead: its part,
+shaft and friction, the shaft's mouth at the file's fixture position. ``--gear-load`` also gives the gear
+to franky-sim's gravity compensation as the end-effector load, as Desk's settings do on a real arm.
 
 franky-sim simulates no collisions and so no reflexes. ``SIGUSR1`` makes one: the running motion's
 Move command is answered ``kReflexAborted`` and the robot goes idle, holding where it is, as a real
@@ -59,7 +60,7 @@ class FrankySim:
     ``franky-sim -s mujoco``, as does ``reflexes`` (for ``inject_reflex``) without them."""
 
     def __init__(self, log_path: Path, timeout: float = 60.0, frictionless: bool = False,
-                 gear: bool = False, gear_load: bool = False, reflexes: bool = False) -> None:
+                 gear: bool = False, gear_load: bool = False, reflexes: bool = False, task: str | None = None) -> None:
         if port_busy():
             raise RuntimeError(f"{HOST}:{PORT} is taken: another robot simulator runs on this machine")
         if gear_load and not gear:
@@ -68,6 +69,10 @@ class FrankySim:
         self.frictionless = frictionless
         self.gear = gear
         flags = [f for f, on in (("--frictionless", frictionless), ("--gear", gear), ("--gear-load", gear_load)) if on]
+        if task is not None:
+            if not gear:
+                raise ValueError("task needs gear")
+            flags += ["--task", str(task)]
         if flags or reflexes:
             cmd = [sys.executable, "-m", "nf_bringup.testing.franky", *flags]
         else:
@@ -185,8 +190,8 @@ def gear_task_elements(mouth_in_world: np.ndarray, task: str = "gear") -> tuple[
     return gear, shaft
 
 
-def add_gear_task(sim: Any, mouth_in_base: np.ndarray) -> None:
-    """Weld the gear to franky-sim's FR3 hand and put the shaft with its mouth at ``mouth_in_base``
+def add_gear_task(sim: Any, mouth_in_base: np.ndarray, task: str = "gear") -> None:
+    """Weld ``task``'s gear to franky-sim's FR3 hand and put its shaft with the mouth at ``mouth_in_base``
     (robot0's base frame) into the scene, before it is compiled."""
     bodies = {b.get("name"): b for b in sim.worldbody.iter("body")}
     if HAND_BODY not in bodies or BASE_BODY not in bodies:
@@ -195,7 +200,7 @@ def add_gear_task(sim: Any, mouth_in_base: np.ndarray) -> None:
     if base.get("quat") or base.get("euler") or base.get("axisangle"):
         raise RuntimeError(f"{BASE_BODY} is turned in the world; the fixture placement assumes it is not")
     base_pos = np.fromstring(base.get("pos", "0 0 0"), sep=" ")
-    gear, shaft = gear_task_elements(base_pos + np.asarray(mouth_in_base, float))
+    gear, shaft = gear_task_elements(base_pos + np.asarray(mouth_in_base, float), task)
     bodies[HAND_BODY].append(gear)
     sim.worldbody.append(shaft)
     option = sim.scene.find("option")
@@ -204,18 +209,20 @@ def add_gear_task(sim: Any, mouth_in_base: np.ndarray) -> None:
     ET.SubElement(option, "flag", multiccd="disable")  # as scenes.py does for its own scenes
 
 
-def configure_gear_load(robot: Any) -> tuple[float, np.ndarray]:
-    """Tell franky-sim's dynamics model (its gravity compensation) about the gear as the robot's
+def configure_gear_load(robot: Any, task: str = "gear") -> tuple[float, np.ndarray]:
+    """Tell franky-sim's dynamics model (its gravity compensation) about ``task``'s gear as the robot's
     end-effector load: mass, centre of mass in the flange frame, inertia (column-major). Returns
     (mass, centre of mass in the flange frame)."""
-    from nf_core.panda_spec import GEAR_PART
+    from nf_core.task_spec import load_task
+
+    part = load_task(task).part.inertia()
 
     c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
     flange_R_hand = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # hand = flange turned -45 deg
-    com = flange_R_hand @ GEAR_PART.com_in_hand
-    inertia = flange_R_hand @ GEAR_PART.inertia @ flange_R_hand.T
-    robot.set_load(float(GEAR_PART.mass), tuple(com), tuple(inertia.flatten(order="F")))
-    return float(GEAR_PART.mass), com
+    com = flange_R_hand @ part.com_in_hand
+    inertia = flange_R_hand @ part.inertia @ flange_R_hand.T
+    robot.set_load(float(part.mass), tuple(com), tuple(inertia.flatten(order="F")))
+    return float(part.mass), com
 
 
 def gear_report(model: Any, data: Any) -> str:
@@ -245,15 +252,20 @@ def gear_report(model: Any, data: Any) -> str:
             f"TCP {fmt(tcp_in_hand)} m in the hand frame")
 
 
-def add_robot(sim: Any, frictionless: bool, gear: bool = False) -> Any:
+def add_robot(sim: Any, frictionless: bool, gear: bool = False, task: str | None = None) -> Any:
     """Add franky-sim's one FR3 to an initialized ``MujocoSimulator`` (as its CLI does) and, when
     ``frictionless``, zero the arm joints' ``frictionloss`` in the scene before it is compiled;
-    when ``gear``, add the gear task (``add_gear_task``) at the driver's default fixture position."""
+    when ``gear``, add the gear task (``add_gear_task``): the gear task's at the driver's default fixture
+    position, or ``task``'s (a gear task file) at its own fixture position."""
     robot = sim.add_robot()
     if frictionless:
         remove_arm_friction(sim.scene)
-    if gear:
+    if gear and task is None:
         add_gear_task(sim, default_fixture_mouth())
+    elif gear:
+        from nf_core.task_spec import load_task
+
+        add_gear_task(sim, load_task(task).top, task)
     return robot
 
 
@@ -308,9 +320,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--gear-load", action="store_true",
                         help="with --gear: configure the gear as the robot's end-effector load, so "
                              "franky-sim's gravity compensation includes it")
+    parser.add_argument("--task", default=None, metavar="FILE",
+                        help="with --gear: the cell of this gear task file (part, shaft, friction, the mouth at its "
+                             "fixture position) instead of the gear task's at the driver's default")
     args = parser.parse_args(argv)
     if args.gear_load and not args.gear:
         parser.error("--gear-load needs --gear")
+    if args.task is not None and not args.gear:
+        parser.error("--task needs --gear")
 
     import franky_sim
     from franky_sim.mujoco_simulator import MujocoSimulator
@@ -324,9 +341,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"Starting Mujoco simulation server without visualization"
           f"{' (' + ', '.join(changes) + ')' if changes else ''}", flush=True)
     with MujocoSimulator(enable_visualization=False) as sim:
-        robot = add_robot(sim, args.frictionless, args.gear)
+        robot = add_robot(sim, args.frictionless, args.gear, args.task)
         if args.gear_load:
-            mass, com = configure_gear_load(robot)
+            mass, com = configure_gear_load(robot, args.task or "gear")
             print(f"end-effector load: {mass:.3f} kg at {com.round(4).tolist()} m in the flange frame", flush=True)
         with franky_sim.SimulationServer(sim, hostname_candidates=[HOST]) as server:
             names = [j.get("name", "") for j in arm_joints(sim.scene)]
