@@ -195,3 +195,22 @@ def test_randomise_varies_the_cell_per_episode_seed_and_keeps_what_the_controlle
     env.reset(5)
     result = run_insertion(env, offset=env.episode_task.fixture_offset, seconds=3.0)
     assert result["success"] and result["depth"] >= 0.019, result
+
+
+def test_a_users_part_is_learned_in_process_and_only_a_controller_holding_it_takes_the_policy(user_gear):
+    """The learner's own rollouts run a controller whose held part is the file's; the policy's law names it,
+    a controller holding that part installs the policy and one holding the gear task's gear refuses it."""
+    from learner_node.trainer import Trainer
+    from nf_controller_node.control_loop import ControlLoop, PolicyParameterError
+
+    cfg = TrainConfig.from_sources(BUILTIN_TASK_DIR.parent / "gear_learn.yaml",
+                                   {"task": str(user_gear), "iterations": 1, "rollouts_per_iter": 2,
+                                    "episode_seconds": 0.1, "eval_episodes": 1})
+    trainer = Trainer(cfg)
+    metrics = trainer.train_iteration()
+    assert metrics["faults"] == 0.0 and trainer.runner.arm.held_part == cfg.held_part != "gear"
+    params = trainer.policy.to_params(version=1)
+    assert params.law.held_part == cfg.held_part
+    ControlLoop(ArmModel(part=held_part_inertia(cfg.held_part))).prepare_policy(params)
+    with pytest.raises(PolicyParameterError, match=r"learned with held_part 'gear bore_radius=0\.0175"):
+        ControlLoop(ArmModel(part=held_part_inertia("gear"))).prepare_policy(params)

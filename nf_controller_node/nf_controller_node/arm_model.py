@@ -56,8 +56,9 @@ class ArmModel:
                 float(part.mass), jMhand.act(np.asarray(part.com_in_hand, float)), R @ part.inertia @ R.T
             )
             model.appendBodyToJoint(joint7, inertia, pin.SE3.Identity())
-        # the part's name (gear | peg | none): a policy learned with another part in the hand is refused
-        self.held_part = "none" if part is None else str(getattr(part, "kind", "gear"))
+        # the part as one line (gear | peg | none | a task file's part): a policy learned with another part in
+        # the hand is refused
+        self.held_part = "none" if part is None else str(getattr(part, "name", "") or getattr(part, "kind", "gear"))
         tcp_in_hand = panda_spec.TCP_IN_HAND if part is None else part.tcp_in_hand
         tcp = pin.SE3(np.eye(3), np.asarray(tcp_in_hand, float))
         self.tcp_id = model.addFrame(

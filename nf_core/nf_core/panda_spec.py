@@ -127,6 +127,7 @@ class HeldPartInertia:
     kind: str = "gear"  # "gear" or "peg"
     body: str = "gear"  # MuJoCo body name of the part
     tcp_site: str = TCP_FRAME  # MuJoCo site name at the part's leading face (the TCP)
+    name: str = ""  # the part as one line (held_part: gear | peg | a task file's part); "": its kind
 
 
 GEAR_PART = HeldPartInertia(GEAR_MASS, GEAR_COM_IN_HAND, gear_inertia(), TCP_IN_HAND, "gear", "gear", TCP_FRAME)

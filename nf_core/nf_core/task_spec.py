@@ -59,13 +59,14 @@ class Part:
             m, r, h = self.mass, self.radius, self.length
             inertia = np.diag([m * (3.0 * r**2 + h**2) / 12.0] * 2 + [0.5 * m * r**2])
             return panda_spec.HeldPartInertia(m, np.array([0.0, 0.0, top + 0.5 * h]), inertia,
-                                              np.array([0.0, 0.0, top + h]), "peg", "peg", panda_spec.PEG_TCP_FRAME)
+                                              np.array([0.0, 0.0, top + h]), "peg", "peg", panda_spec.PEG_TCP_FRAME,
+                                              self.text())
         m, r1, r2, h = self.mass, self.bore_radius, self.outer_radius, self.thickness
         ixx = m * (3.0 * (r1**2 + r2**2) + h**2) / 12.0
         inertia = np.diag([ixx, ixx, 0.5 * m * (r1**2 + r2**2)])
         return panda_spec.HeldPartInertia(m, np.array([0.0, 0.0, FINGERTIP_IN_HAND + 0.5 * h]), inertia,
                                           np.array([0.0, 0.0, FINGERTIP_IN_HAND + h]), "gear", "gear",
-                                          panda_spec.TCP_FRAME)
+                                          panda_spec.TCP_FRAME, self.text())
 
     def text(self) -> str:
         """The part as one line (``held_part`` of a policy's law and of the nodes): the built-in name when
