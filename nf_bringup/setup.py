@@ -29,6 +29,7 @@ setup(
             "nf_franka_stack = nf_bringup.franka_stack:main",
             "run_stack = nf_bringup.stack:main",
             "run_robot = nf_bringup.robot_run:main",
+            "robot_state = nf_bringup.robot_state:main",
             "fleet_view = nf_bringup.fleet_view:main",
         ],
     },

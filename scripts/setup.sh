@@ -71,7 +71,7 @@ fi
 # 3. colcon build of the workspace when any package source changed.
 # Every package linked in ros2_ws/src is built; its folder is the link's target.
 PKG_DIRS=$(for link in ros2_ws/src/*; do realpath --relative-to=. "$link"; done)
-PY_PKGS=$(for link in ros2_ws/src/*; do [ -f "$link/setup.py" ] && basename "$link"; done)
+PY_PKGS=$(for link in ros2_ws/src/*; do if [ -f "$link/setup.py" ]; then basename "$link"; fi; done)
 SRC_HASH=$( (find $PKG_DIRS -type f \
   \( -name '*.py' -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -name '*.xml' \
      -o -name '*.txt' -o -name '*.cfg' -o -name 'setup.py' -o -path '*/resource/*' -o -name '*.yaml' \) \

@@ -37,6 +37,8 @@ def generate_launch_description() -> LaunchDescription:
              parameters=files, condition=IfCondition(separate)),
         Node(package="nf_controller_node", executable="nf_controller", name="nf_controller", output="screen",
              parameters=files, condition=IfCondition(separate)),
+        Node(package="nf_bringup", executable="robot_state", name="robot_state", output="screen",
+             parameters=files),  # the cell's robot description and transforms, for viewers and the bag
         Node(package="learner_node", executable="learner", name="learner_node", output="screen",
              parameters=[*files, {"out_dir": LaunchConfiguration("out_dir"), "policy_subscribers": 1}]),
     ])

@@ -6,7 +6,11 @@ folder, and serves two JSON channels to Foxglove (Studio or app: "Open connectio
 
 - ``/fleet/arms`` (5 Hz, and at once when an arm's mode, fault, policy or episode changes): per arm
   its mode, fault, policy version, episode, V and dV/dt, and its success rate over its last episodes;
-- ``/fleet/learner`` (when its files change): iteration of iterations, success, time per iteration.
+- ``/fleet/learner`` (when its files change): iteration of iterations, success, time per iteration;
+- per arm that has a ``robot_state`` node, its ``<ns>/robot_description`` (JSON ``{"data": URDF}``, again
+  every few seconds for clients that connect later: the 3D panel's URDF layer, source "topic") and its
+  ``<ns>/tf`` as ``foxglove.FrameTransforms`` (an arm under a namespace gets its frames prefixed
+  ``<ns>/``, the URDF layer's frame prefix, so that arms do not share frames).
 
     fleet_view --ros-args -p run_dir:=runs -p port:=8765
 
@@ -22,19 +26,26 @@ from pathlib import Path
 from typing import Any
 
 import foxglove
+import foxglove.channels
+import foxglove.messages
 from nf_msgs.msg import ControllerStatus, RolloutChunk
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
 
 from nf_bringup.fleet_state import FleetState, LearnerProgress
+from nf_bringup.robot_state import DESCRIPTION, DESCRIPTION_QOS, TF_QOS
 from nf_core import qos
 from nf_core.ros_runtime import declare_read_only, run_node
 from nf_core.topics import CONTROLLER_STATUS, ROLLOUTS
+from tf2_msgs.msg import TFMessage
 
 LOG = logging.getLogger("fleet_view")
 HOST = "127.0.0.1"  # never another interface: the view has no authentication
 STATUS_TYPE = "nf_msgs/msg/ControllerStatus"
+DESCRIPTION_SCHEMA = {"type": "object", "properties": {"data": {"type": "string"}}}
+DESCRIPTION_PERIOD = 2.0  # s between repeats of each arm's robot description
 # A monitor must not hold back the controller's writer: best effort, the latest few statuses only.
 STATUS_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
 
@@ -87,6 +98,9 @@ class FleetViewNode(Node):
         self.fleet = FleetState(float(self.settings["success_depth"]))
         self.learner = LearnerProgress(Path(self.settings["run_dir"]))
         self._subscribed: set[str] = set()  # namespaces ("" for the root) already followed
+        self._described: set[str] = set()  # namespaces whose robot_state is followed
+        self._descriptions: dict[str, tuple[Any, str]] = {}  # ns -> (channel, URDF)
+        self._tf_channels: dict[str, Any] = {}
         self.server = foxglove.start_server(name="nf-control fleet", host=HOST, port=int(self.settings["port"]))
         self.arms_channel = foxglove.Channel("/fleet/arms", schema=ARMS_SCHEMA)
         self.learner_channel = foxglove.Channel("/fleet/learner", schema=LEARNER_SCHEMA)
@@ -96,11 +110,15 @@ class FleetViewNode(Node):
         self.create_timer(float(self.settings["discovery_period"]), self._discover)
         self.create_timer(1.0 / float(self.settings["publish_rate"]), self._publish_arms)
         self.create_timer(1.0, self._publish_learner)
+        self.create_timer(DESCRIPTION_PERIOD, self._publish_descriptions)
 
     def _discover(self) -> None:
-        """Follow every namespace that publishes a ControllerStatus and is not followed yet."""
+        """Follow every namespace that publishes a ControllerStatus and is not followed yet, and every
+        robot_state's description and transforms."""
+        topics = self.get_topic_names_and_types()
+        self._discover_cells(topics)
         suffix = "/" + CONTROLLER_STATUS
-        for name, types in self.get_topic_names_and_types():
+        for name, types in topics:
             if not name.endswith(suffix) or STATUS_TYPE not in types:
                 continue
             ns = name[:-len(suffix)]
@@ -113,6 +131,39 @@ class FleetViewNode(Node):
                 self.create_subscription(RolloutChunk, f"{ns}/{ROLLOUTS}",
                                          lambda msg, ns=ns: self._on_chunk(ns, msg), qos.ROLLOUTS)
             LOG.info("following arm %s", ns or "/")
+
+    def _discover_cells(self, topics: list[tuple[str, list[str]]]) -> None:
+        suffix = "/" + DESCRIPTION
+        for name, types in topics:
+            ns = name[:-len(suffix)]
+            if not name.endswith(suffix) or "std_msgs/msg/String" not in types or ns in self._described:
+                continue
+            self._described.add(ns)
+            self._tf_channels[ns] = foxglove.channels.FrameTransformsChannel(f"{ns}/tf")
+            self.create_subscription(String, name, lambda msg, ns=ns: self._on_description(ns, msg), DESCRIPTION_QOS)
+            self.create_subscription(TFMessage, f"{ns}/tf", lambda msg, ns=ns: self._on_tf(ns, msg), TF_QOS)
+            LOG.info("following the robot description and transforms of %s", ns or "/")
+
+    def _on_description(self, ns: str, msg: String) -> None:
+        channel = foxglove.Channel(f"{ns}/{DESCRIPTION}", schema=DESCRIPTION_SCHEMA)
+        self._descriptions[ns] = (channel, msg.data)
+        channel.log({"data": msg.data})
+
+    def _publish_descriptions(self) -> None:
+        for channel, urdf in self._descriptions.values():
+            channel.log({"data": urdf})
+
+    def _on_tf(self, ns: str, msg: TFMessage) -> None:
+        prefix = f"{ns.strip('/')}/" if ns else ""
+        transforms = []
+        for t in msg.transforms:
+            tr, rot = t.transform.translation, t.transform.rotation
+            transforms.append(foxglove.messages.FrameTransform(
+                timestamp=foxglove.messages.Timestamp(sec=t.header.stamp.sec, nsec=t.header.stamp.nanosec),
+                parent_frame_id=prefix + t.header.frame_id, child_frame_id=prefix + t.child_frame_id,
+                translation=foxglove.messages.Vector3(x=tr.x, y=tr.y, z=tr.z),
+                rotation=foxglove.messages.Quaternion(x=rot.x, y=rot.y, z=rot.z, w=rot.w)))
+        self._tf_channels[ns].log(foxglove.messages.FrameTransforms(transforms=transforms))
 
     def _on_status(self, ns: str, msg: ControllerStatus) -> None:
         if self.fleet.status(ns, time.monotonic(), mode=msg.mode, fault=msg.fault,

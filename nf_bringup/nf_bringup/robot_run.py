@@ -111,7 +111,9 @@ def robot_commands(args: argparse.Namespace, run_dir: Path, record: bool) -> dic
                "-p", f"learner_node:stiffness_floor:={float(args.stiffness_floor)!r}",
                *from_checkpoint_args(args.from_checkpoint, run_dir),
                *(["-p", f"task:={task_argument(args.task)}"] if args.task else []), *args.learner_arg]
-    cmds = {"arm": arm, "learner": learner}
+    state = [py, "-m", "nf_bringup.robot_state", "--ros-args", "--params-file", str(args.config),
+             *(["-p", f"task:={task_argument(args.task)}"] if args.task else [])]
+    cmds = {"arm": arm, "learner": learner, "state": state}
     if record:
         cmds["recorder"] = [py, "-m", "nf_bags.record", "-o", str(run_dir / "bag")]
     return cmds
@@ -297,6 +299,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             procs["recorder"] = ManagedProcess("recorder", cmds["recorder"], env, run_dir / "logs",
                                                watch=(*ROBOT_RECORDER_READY, POLICY_READY))
         procs["arm"] = ManagedProcess("arm", cmds["arm"], env, run_dir / "logs")
+        procs["state"] = ManagedProcess("state", cmds["state"], env, run_dir / "logs")  # for viewers and the bag
         if record:
             wait_for_recorder(procs["recorder"], [procs["arm"]], texts=ROBOT_RECORDER_READY)
         if procs["arm"].running():
@@ -313,7 +316,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if "learner" in procs:
             code = procs["learner"].stop()
-        for name in ("arm", "recorder"):
+        for name in ("state", "arm", "recorder"):
             if name in procs:
                 procs[name].stop()
         if sim is not None:

@@ -84,6 +84,8 @@ def node_commands(configs: Sequence[Path], run_dir: Path, iterations: int | None
     for i, ns in enumerate(arm_namespaces(arms)):
         remap = ["-r", f"__ns:={ns}"] if ns else []
         name = f"arm{i}" if ns else "arm"
+        # the cell's robot description and transforms, for viewers and the bag (reads the files' task)
+        cmds[f"{name}-state" if ns else "state"] = [py, "-m", "nf_bringup.robot_state", *params, *remap]
         if composed:
             cmds[name] = [py, "-m", "nf_bringup.sim_stack", *params, *lockstep_controller, *remap]
         else:
