@@ -140,18 +140,20 @@ class FleetViewNode(Node):
                 continue
             self._described.add(ns)
             self._tf_channels[ns] = foxglove.channels.FrameTransformsChannel(f"{ns}/tf")
+            self._descriptions[ns] = (foxglove.Channel(f"{ns}/{DESCRIPTION}", schema=DESCRIPTION_SCHEMA), "")
             self.create_subscription(String, name, lambda msg, ns=ns: self._on_description(ns, msg), DESCRIPTION_QOS)
             self.create_subscription(TFMessage, f"{ns}/tf", lambda msg, ns=ns: self._on_tf(ns, msg), TF_QOS)
             LOG.info("following the robot description and transforms of %s", ns or "/")
 
     def _on_description(self, ns: str, msg: String) -> None:
-        channel = foxglove.Channel(f"{ns}/{DESCRIPTION}", schema=DESCRIPTION_SCHEMA)
+        channel = self._descriptions[ns][0]
         self._descriptions[ns] = (channel, msg.data)
         channel.log({"data": msg.data})
 
     def _publish_descriptions(self) -> None:
         for channel, urdf in self._descriptions.values():
-            channel.log({"data": urdf})
+            if urdf:
+                channel.log({"data": urdf})
 
     def _on_tf(self, ns: str, msg: TFMessage) -> None:
         prefix = f"{ns.strip('/')}/" if ns else ""
