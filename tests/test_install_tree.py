@@ -63,7 +63,7 @@ def test_src_holds_relative_symlinks():
     for link in src.iterdir():
         assert link.is_symlink() and not os.readlink(link).startswith("/"), link
         assert (link / "package.xml").is_file(), link
-    assert {p.name for p in src.iterdir()} == {*PYTHON_PACKAGES, "nf_msgs"}
+    assert {p.name for p in src.iterdir()} == {*PYTHON_PACKAGES, "nf_msgs", "tf2_msgs"}
 
 
 def test_launch_files_are_installed_and_parse():
