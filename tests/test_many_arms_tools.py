@@ -29,7 +29,8 @@ def _after(argv: list[str], flag: str) -> list[str]:
 
 def test_without_arms_the_commands_are_the_single_arm_ones(tmp_path):
     cmds = node_commands([CONFIG], tmp_path, 3)
-    assert set(cmds) == {"arm", "learner", "recorder"}
+    assert set(cmds) == {"arm", "state", "learner", "recorder"}
+    assert cmds["state"][1:3] == ["-m", "nf_bringup.robot_state"]  # the cell's description and transforms
     assert cmds["arm"] == [sys.executable, "-m", "nf_bringup.sim_stack", "--ros-args", "--params-file", FILES[0],
                            "--params-file", FILES[1]]
     assert not any("learner_node:arms" in a for a in cmds["learner"])
@@ -43,7 +44,8 @@ def test_without_arms_the_commands_are_the_single_arm_ones(tmp_path):
 
 def test_arms_get_a_namespace_the_lockstep_file_and_the_learner_their_names(tmp_path):
     cmds = node_commands([CONFIG], tmp_path, 2, arms=3)
-    assert set(cmds) == {"arm0", "arm1", "arm2", "learner", "recorder"}
+    assert set(cmds) == {"arm0", "arm1", "arm2", "arm0-state", "arm1-state", "arm2-state", "learner", "recorder"}
+    assert _after(cmds["arm2-state"], "-r") == ["__ns:=/arm2"]
     for i in range(3):
         argv = cmds[f"arm{i}"]
         assert argv[1:3] == ["-m", "nf_bringup.sim_stack"]
@@ -60,7 +62,8 @@ def test_arms_get_a_namespace_the_lockstep_file_and_the_learner_their_names(tmp_
     assert policy_ready(["/arm0", "/arm1"]) == ("recording /arm0/policy_parameters (",
                                                 "recording /arm1/policy_parameters (")
     separate = node_commands([CONFIG], tmp_path, 2, composed=False, arms=2)
-    assert set(separate) == {"arm0-sim", "arm0-controller", "arm1-sim", "arm1-controller", "learner", "recorder"}
+    assert set(separate) == {"arm0-sim", "arm0-controller", "arm0-state", "arm1-sim", "arm1-controller", "arm1-state",
+                             "learner", "recorder"}
     assert _after(separate["arm1-sim"], "-r") == ["__ns:=/arm1"]
 
 
