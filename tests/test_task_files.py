@@ -214,3 +214,26 @@ def test_a_users_part_is_learned_in_process_and_only_a_controller_holding_it_tak
     ControlLoop(ArmModel(part=held_part_inertia(cfg.held_part))).prepare_policy(params)
     with pytest.raises(PolicyParameterError, match=r"learned with held_part 'gear bore_radius=0\.0175"):
         ControlLoop(ArmModel(part=held_part_inertia("gear"))).prepare_policy(params)
+
+
+def test_a_checkpoint_keeps_its_task_file_for_a_machine_that_does_not_have_it(tmp_path, monkeypatch):
+    """A policy trained on a user's file is deployed elsewhere (the robot's PC): the checkpoint carries the
+    file's text, and its settings read back with the same cell where the file is gone."""
+    import torch
+
+    from learner_node.trainer import Trainer
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    task = write_task(tmp_path, USER_GEAR, name="bench_gear.yaml")
+    cfg = TrainConfig.from_sources(BUILTIN_TASK_DIR.parent / "gear_learn.yaml",
+                                   {"task": str(task), "iterations": 1, "rollouts_per_iter": 2,
+                                    "episode_seconds": 0.1, "eval_episodes": 1})
+    Trainer(cfg).save_checkpoint(tmp_path / "checkpoint.pt")
+    part = load_task(task).part.text()
+    task.unlink()
+    state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    again = TrainConfig(**TrainConfig.with_defaults(state["config"]))
+    assert again.held_part == part and Path(again.task).parent == tmp_path / "cache" / "nf-control" / "tasks"
+    np.testing.assert_array_equal(load_task(again.task).goal_position, [0.45, 0.10, 0.11 - 0.025])
+    # a built-in task stores no copy
+    assert "task_file" not in TrainConfig(task="gear").stored()

@@ -24,7 +24,7 @@ import yaml
 from nf_core.flow_spec import FLOW_INITS
 from nf_core.friction import FrictionRanges
 from nf_core.policy_params import PolicyLaw
-from nf_core.task_spec import TaskFileError, load_task
+from nf_core.task_spec import TaskFileError, load_task, task_path
 
 TASKS = ("gear", "peg", "block", "gear_clamp")  # built in; any task file (a path) is a task too
 POLICIES = ("nf", "mlp")
@@ -48,6 +48,23 @@ TASK_DEFAULTS: dict[str, dict[str, float | int]] = {
                    "damping": 1.0},
     "block": {"episode_seconds": 4.0, "sigma_init": 2.0, "n_flow": 2, "n_hidden": 8, "stiffness": 1.0, "damping": 1.0},
 }
+
+TASK_FILE_KEY = "task_file"  # a stored config's copy of its task file's text
+
+
+def materialise_task(text: str) -> Path:
+    """A stored task file's text as a file here (the user's cache, named by its hash): for a checkpoint
+    whose task file is not on this machine."""
+    import hashlib
+    import os
+
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "nf-control" / "tasks"
+    path = cache / f"{hashlib.sha256(text.encode()).hexdigest()[:16]}.yaml"
+    if not path.is_file():
+        cache.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    return path
+
 
 YAML_SHARED = "/**"
 YAML_NODE = "learner_node"
@@ -333,6 +350,14 @@ class TrainConfig:
         """Plain dict of all fields (resolved values)."""
         return dataclasses.asdict(self)
 
+    def stored(self) -> dict[str, Any]:
+        """``to_dict`` as a checkpoint keeps it: with the task file's text (``task_file``) when the task is
+        a file, so that the checkpoint still holds its cell where that file is not (another machine)."""
+        out = self.to_dict()
+        if self.task not in TASK_DEFAULTS:
+            out[TASK_FILE_KEY] = task_path(self.task).read_text()
+        return out
+
     @staticmethod
     def with_defaults(stored: dict[str, Any]) -> dict[str, Any]:
         """A stored config (checkpoint, config.json) as today's settings: every setting added since it was
@@ -347,6 +372,10 @@ class TrainConfig:
         if used:
             raise ValueError(f"a run with removed settings ({', '.join(used)}); the last commit that had them is "
                              "named in docs/results/removed_settings.md")
+        stored = dict(stored)
+        text = stored.pop(TASK_FILE_KEY, None)
+        if text is not None and not Path(stored["task"]).is_file():
+            stored["task"] = str(materialise_task(text))
         kept = {k: v for k, v in stored.items() if k not in REMOVED_SETTINGS}
         return {**TrainConfig(task=stored["task"]).to_dict(), **kept}
 

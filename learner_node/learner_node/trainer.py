@@ -324,7 +324,7 @@ class Trainer:
         """Everything needed to continue exactly: policy, optimiser, baseline, RNG states, iteration, history."""
         return {
             "format": CHECKPOINT_FORMAT,
-            "config": self.cfg.to_dict(),
+            "config": self.cfg.stored(),
             "iteration": self.iteration,
             "policy": self.policy.state_dict(),
             **self.update_rule.state_dict(),  # optimizer, and baseline (action noise) or explorer (params)
