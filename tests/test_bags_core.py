@@ -184,3 +184,22 @@ def test_player_reads_ahead_in_order_and_hands_over_a_read_error(sample_messages
     assert len(got) == 1
     stop.set()
     assert list(read_ahead(iter(sample_messages), stop)) == []
+
+
+@pytest.mark.ros
+def test_a_bag_of_an_arm_with_joint_friction_resimulates_exactly_with_that_friction_only(tmp_path):
+    """The bag does not hold the arm's friction: re-simulated without it the arm goes elsewhere, with it given
+    the same states to 1e-9. nf_bags.info says the bag can be re-simulated."""
+    from nf_bags.info import main as info_main
+
+    from nf_bringup.sample_bag import record_sample
+
+    bag = record_sample(tmp_path / "friction", duration=0.6, sim_args=["-p", "joint_friction:=0.4",
+                                                                       "-p", "joint_viscous:=0.05"])
+    start = resim.episode_starts(bag)[1]
+    plain = resim.resimulate(bag, start)
+    assert plain.steps >= 500 and plain.max_q_error > 1e-6, plain
+    exact = resim.resimulate(bag, start, friction=(0.4, 0.05))
+    assert exact.steps == plain.steps and exact.max_error <= 1e-9 and exact.max_effort_error <= 1e-9, exact
+    assert resim.resimulable(bag)[0] and resim.resimulable(bag)[1].startswith("every 1 ms state")
+    assert info_main([str(bag)]) == 0

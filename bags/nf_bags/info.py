@@ -17,6 +17,7 @@ import sys
 from typing import Any
 
 from .bagfile import BagError, BagScan, repair, scan
+from .resim import resimulable
 from .topics import arm_of, arms_of
 
 
@@ -83,10 +84,15 @@ def main(argv: list[str] | None = None) -> int:
         if fixed is not None:
             out["repair"] = {"output": str(fixed.output) if fixed.output else None, "messages": fixed.messages,
                              "dropped": fixed.dropped}
+        if result.closed:
+            out["resimulable"], out["resimulable_why"] = resimulable(args.bag)
         print(json.dumps(out, indent=1))
     else:
         print(result.report())
         print(arms_line(result))
+        if result.closed:
+            ok, why = resimulable(args.bag)
+            print(f"re-simulable (nf_bags.resim): {'yes' if ok else 'no'}: {why}")
         if fixed is not None:
             print(fixed.report())
     if fixed is not None:

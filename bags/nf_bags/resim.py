@@ -3,7 +3,11 @@ reset state (its joint positions; a reset state has zero velocity) and is steppe
 commands, each applied to the state whose stamp its label names, as the lockstep sim did. The
 states it produces are compared with the recorded ``joint_states``. ROS-free.
 
-``python -m nf_bags.resim BAG [--episode N | --start-ns S] [--task gear]``
+The recorded arm's joint friction is not in the bag: give it (``friction``: Coulomb and added viscous
+per joint, as ``sim_bridge``'s ``joint_friction`` / ``joint_viscous``), or take what ``nf_bags.friction``
+identifies from the bag's own states and efforts (``--friction identify``).
+
+``python -m nf_bags.resim BAG [--episode N | --start-ns S] [--task gear] [--friction C V | --friction identify]``
 """
 
 from __future__ import annotations
@@ -42,9 +46,11 @@ def episode_starts(bag: str | Path) -> list[int]:
 
 
 def resimulate(bag: str | Path, start_ns: int | None = None, task: str | None = None,
-               driver_gravity_compensation: bool = False, max_steps: int | None = None) -> ResimResult:
+               driver_gravity_compensation: bool = False, max_steps: int | None = None,
+               friction: tuple[object, object] | None = None) -> ResimResult:
     """Re-run the recorded commands from the reset state at ``start_ns`` (default: the first one)
-    until the next reset state, the last answered state, or ``max_steps``."""
+    until the next reset state, the last answered state, or ``max_steps``; with ``friction`` (Coulomb
+    Nm, added viscous Nm s/rad: a number or one per joint each) the simulated arm has that joint friction."""
     from sim_bridge_node.bridge import ACCEPTED, BridgeConfig, SimBridge
     from sim_bridge_node.env import InsertionEnv
 
@@ -63,8 +69,10 @@ def resimulate(bag: str | Path, start_ns: int | None = None, task: str | None = 
     if len(traj.names) != 7 or traj.q.shape[1] != 7:
         raise ValueError(f"the recorded joint states have {len(traj.names)} joints; re-simulation needs the "
                          "7-joint arm")
-    bridge = SimBridge(InsertionEnv(task or recorded_task(bag) or "gear"),
-                       BridgeConfig(mode="lockstep", driver_gravity_compensation=driver_gravity_compensation))
+    env = InsertionEnv(task or recorded_task(bag) or "gear")
+    if friction is not None:
+        env.set_joint_friction(*friction)
+    bridge = SimBridge(env, BridgeConfig(mode="lockstep", driver_gravity_compensation=driver_gravity_compensation))
     bridge.reset(q=traj.q[i])
     step_ns = round(bridge.dt * 1e9)  # consecutive recorded states are one physics step apart
     errors = np.zeros(3)
@@ -100,6 +108,39 @@ def resimulate(bag: str | Path, start_ns: int | None = None, task: str | None = 
     return ResimResult(start_ns, steps, float(errors[0]), float(errors[1]), float(errors[2]), reason)
 
 
+def resimulable(bag: str | Path) -> tuple[bool, str]:
+    """Whether ``bag`` can be re-simulated: in every episode that has lockstep commands (from its reset
+    state to its last answered state), a joint state every physics step (1 ms) and the command that
+    answered each. (yes/no, why)."""
+    from .bagfile import BagError
+
+    try:
+        traj = joint_trajectory(bag)
+        commands, _ = commands_by_state(bag)
+    except (BagError, KeyError, ValueError) as exc:
+        return False, f"no joint states and commands to re-simulate ({exc})"
+    stamps = traj.stamp_ns.astype(np.int64)
+    thinned = ("joint states every {} ms, not every 1 ms step: record the sim and the controller as two "
+               "processes (make run ARGS=\"--separate\"), whose sim publishes every step")
+    if stamps.size > 1 and np.median(np.diff(stamps)) > 1_000_000:
+        return False, thinned.format(f"{np.median(np.diff(stamps)) / 1e6:g}")
+    resets = [int(i) for i in traj.resets()]
+    if not resets:
+        return False, "no reset state (a joint state with zero velocity and effort) to start from"
+    episodes, steps = 0, 0
+    for first, end in zip(resets, [*resets[1:], len(stamps)], strict=True):
+        answered = [i for i in range(first, end) if int(stamps[i]) in commands]
+        if not answered:
+            continue
+        gaps = np.diff(stamps[first:answered[-1] + 2][: answered[-1] + 2 - first])
+        if np.any(gaps != 1_000_000):
+            return False, thinned.format(f"{np.max(gaps) / 1e6:g}")
+        episodes, steps = episodes + 1, steps + len(answered)
+    if not episodes:
+        return False, "no lockstep commands (state_stamp_ns labels): a realtime recording cannot be re-simulated"
+    return True, f"every 1 ms state and its command in {episodes} episode(s), {steps} steps"
+
+
 def start_of_episode(bag: str | Path, episode: int) -> int:
     """Stamp (ns) of the reset state that starts ``episode`` (0: the first reset state in the bag);
     ``ValueError`` naming how many there are if it does not exist."""
@@ -125,11 +166,26 @@ def main(argv: list[str] | None = None) -> int:
     group.add_argument("--start-ns", type=int, help="stamp of the reset state to start from")
     parser.add_argument("--task", help="scene (default: from the recorded task_status)")
     parser.add_argument("--driver-gravity-compensation", action="store_true")
+    parser.add_argument("--friction", nargs="+", metavar="C V",
+                        help="the arm's joint friction: Coulomb (Nm) and added viscous (Nm s/rad), for all joints; "
+                             "or 'identify' (nf_bags.friction on this bag)")
     parser.add_argument("--tol", type=float, default=1e-9)
     args = parser.parse_args(argv)
     try:
         start = args.start_ns if args.start_ns is not None else start_of_episode(args.bag, args.episode)
-        r = resimulate(args.bag, start, args.task, args.driver_gravity_compensation)
+        friction = None
+        if args.friction == ["identify"]:
+            from .friction import identify_bag
+
+            p = identify_bag(args.bag).sim_parameters()
+            friction = (p["joint_friction"], p["joint_viscous"])
+            print(f"joint friction identified from the bag: Coulomb {p['joint_friction']} Nm, added viscous "
+                  f"{p['joint_viscous']} Nm s/rad")
+        elif args.friction is not None:
+            if len(args.friction) != 2:
+                parser.error("--friction takes two numbers (Coulomb Nm, viscous Nm s/rad) or 'identify'")
+            friction = (float(args.friction[0]), float(args.friction[1]))
+        r = resimulate(args.bag, start, args.task, args.driver_gravity_compensation, friction=friction)
     except (BagError, ValueError, KeyError, IndexError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

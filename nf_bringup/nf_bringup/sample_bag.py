@@ -13,6 +13,7 @@ import argparse
 import shutil
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -25,8 +26,10 @@ TOPICS = ["/joint_states", "/effort_controller/commands", "/clock", "/task_statu
           "/rollouts", "/policy_parameters", "/diagnostics"]
 
 
-def record_sample(out: Path, duration: float = 1.5, seed: int = 3, domain: int | None = None) -> Path:
-    """Record the sample run into ``out`` (replaced if it exists); returns ``out``."""
+def record_sample(out: Path, duration: float = 1.5, seed: int = 3, domain: int | None = None,
+                  sim_args: Sequence[str] = ()) -> Path:
+    """Record the sample run into ``out`` (replaced if it exists); returns ``out``. ``sim_args``: more
+    ``-p`` arguments for the sim (e.g. its joint friction)."""
     import rclpy
     from nf_msgs.action import RunEpisode
     from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
@@ -44,8 +47,8 @@ def record_sample(out: Path, duration: float = 1.5, seed: int = 3, domain: int |
     logs = Path(tempfile.mkdtemp(prefix="nf_bags_sample_"))
     tmp_bag = logs / "sample"
     rec = RosProcess(["-m", "nf_bags.record", "-o", str(tmp_bag), "--topics", *TOPICS], domain, logs / "recorder.log")
-    sim = RosProcess(["-m", "sim_bridge_node.node", "--ros-args", "-p", "task:=gear", "-p", "mode:=lockstep"],
-                 domain, logs / "sim.log")
+    sim = RosProcess(["-m", "sim_bridge_node.node", "--ros-args", "-p", "task:=gear", "-p", "mode:=lockstep",
+                      *sim_args], domain, logs / "sim.log")
     # lockstep: the sim waits for every command, so wall-time deadlines mean nothing (a busy
     # machine would latch "consecutive deadline misses" and abort the episode)
     ctl = RosProcess(["-m", "nf_controller_node.node", "--ros-args", "-p", "idle_mode:=pause",
