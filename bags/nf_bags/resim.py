@@ -177,10 +177,14 @@ def main(argv: list[str] | None = None) -> int:
         if args.friction == ["identify"]:
             from .friction import identify_bag
 
-            p = identify_bag(args.bag).sim_parameters()
+            found = identify_bag(args.bag)
+            p = {k: [round(float(v), 4) for v in values] for k, values in found.sim_parameters().items()}
             friction = (p["joint_friction"], p["joint_viscous"])
             print(f"joint friction identified from the bag: Coulomb {p['joint_friction']} Nm, added viscous "
                   f"{p['joint_viscous']} Nm s/rad")
+            missing = [j.name for j in found.joints if not j.identified]
+            if missing:
+                print(f"warning: not identified (too little motion), re-simulated without friction: {missing}")
         elif args.friction is not None:
             if len(args.friction) != 2:
                 parser.error("--friction takes two numbers (Coulomb Nm, viscous Nm s/rad) or 'identify'")
