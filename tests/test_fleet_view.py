@@ -96,20 +96,50 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-class FakeArms:
+class PublisherThread:
+    """A node of this test in its own context, publishing from a thread (``_run``) until ``close``."""
+
+    def __init__(self, domain: int, name: str) -> None:
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx, domain_id=domain)
+        self.node = rclpy.create_node(name, context=self.ctx)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(5.0)
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.ctx)
+
+
+def _wait_for_server(port: int, procs: list[RosProcess], timeout: float) -> None:
+    """Until the view's WebSocket server listens (once its process has imported rclpy and foxglove)."""
+    t0 = time.monotonic()
+    while True:
+        for proc in procs:
+            assert proc.alive(), proc.log()
+        assert time.monotonic() - t0 < timeout, procs[0].log()
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+            return
+        except OSError:
+            time.sleep(0.1)
+
+
+class FakeArms(PublisherThread):
     """This test's node: /arm0 running and inserting, /arm1 in safe hold and failing, 20 Hz."""
 
     def __init__(self, domain: int) -> None:
-        self.ctx = rclpy.Context()
-        rclpy.init(context=self.ctx, domain_id=domain)
-        self.node = rclpy.create_node("fake_arms", context=self.ctx)
+        super().__init__(domain, "fake_arms")
         self.arms = {"/arm0": (ControllerStatus.MODE_RUNNING, "", 0.02),
                      "/arm1": (ControllerStatus.MODE_SAFE_HOLD, "torque limit", 0.001)}
         self.pubs = {ns: (self.node.create_publisher(ControllerStatus, f"{ns}/controller_status", qos.STATE),
                           self.node.create_publisher(RolloutChunk, f"{ns}/rollouts", qos.ROLLOUTS))
                      for ns in self.arms}
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
     def _run(self) -> None:
@@ -122,12 +152,6 @@ class FakeArms:
                                                     lyapunov=0.5, lyapunov_rate=-0.2))
                 chunk_pub.publish(RolloutChunk(episode_id=episode, seq=0, final=True, n_chunks=1, dim=3,
                                                t=[0.0, 0.1], insertion_depth=[0.0, depth]))
-
-    def close(self) -> None:
-        self.stop.set()
-        self.thread.join(5.0)
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.ctx)
 
 
 def _read_until(ws, channels: dict[int, str], want, timeout: float) -> dict[str, dict]:
@@ -158,19 +182,11 @@ def test_a_foxglove_client_sees_both_arms_and_the_learner(tmp_path):
     (run / "config.json").write_text(json.dumps({"iterations": 30}))
     (run / "metrics.json").write_text(json.dumps(METRICS))
     domain, port = allocate_domain_id(), _free_port()
-    t0 = time.monotonic()
     view = RosProcess(["-m", "nf_bringup.fleet_view", "--ros-args", "-p", f"port:={port}",
                        "-p", f"run_dir:={run}"], domain, log_path=tmp_path / "fleet_view.log")
     arms = FakeArms(domain)
     try:
-        while True:  # the server listens once the process has imported rclpy and foxglove
-            assert view.alive(), view.log()
-            assert time.monotonic() - t0 < 15, view.log()
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
-                break
-            except OSError:
-                time.sleep(0.1)
+        _wait_for_server(port, [view], timeout=15)
         with connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=5) as ws:
             assert ws.subprotocol in SUBPROTOCOLS
             channels: dict[int, str] = {}
@@ -237,16 +253,12 @@ def test_the_cell_urdf_carries_the_part_where_the_controller_has_its_tcp(task):
     assert not frames.set_joints(list(panda_spec.JOINT_NAMES), np.full(7, np.nan))
 
 
-class JointStates:
+class JointStates(PublisherThread):
     """This test's driver: the arm's joint states at 50 Hz, joint 1 turning slowly."""
 
     def __init__(self, domain: int) -> None:
-        self.ctx = rclpy.Context()
-        rclpy.init(context=self.ctx, domain_id=domain)
-        self.node = rclpy.create_node("test_driver", context=self.ctx)
+        super().__init__(domain, "test_driver")
         self.pub = self.node.create_publisher(JointState, "joint_states", qos.STATE)
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
     def _run(self) -> None:
@@ -256,12 +268,6 @@ class JointStates:
             msg = JointState(name=list(panda_spec.JOINT_NAMES), position=list(Q + [0.2 * np.sin(t), 0, 0, 0, 0, 0, 0]))
             msg.header.stamp = self.node.get_clock().now().to_msg()
             self.pub.publish(msg)
-
-    def close(self) -> None:
-        self.stop.set()
-        self.thread.join(5.0)
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.ctx)
 
 
 @pytest.mark.ros
@@ -278,15 +284,7 @@ def test_a_foxglove_client_sees_the_cell_and_the_bag_holds_it(tmp_path):
                        f"run_dir:={tmp_path}", "-p", "discovery_period:=0.2"], domain, log_path=tmp_path / "view.log")
     driver = JointStates(domain)
     try:
-        t0 = time.monotonic()
-        while True:  # the server listens once the process has imported rclpy and foxglove
-            assert view.alive() and state.alive(), view.log() + state.log()
-            assert time.monotonic() - t0 < 20, view.log()
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
-                break
-            except OSError:
-                time.sleep(0.1)
+        _wait_for_server(port, [view, state], timeout=20)
         with connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=5) as ws:
             channels: dict[int, dict] = {}
             deadline = time.monotonic() + 20

@@ -2,7 +2,7 @@
 ``robot_state_publisher`` does, for viewers (Foxglove's 3D panel, rviz2) and bags.
 
 - ``robot_description`` (std_msgs/String, transient local: a viewer or recorder that joins later gets it):
-  the cell's URDF (``nf_core.cell_description``: the Panda, the task's part in the hand, its fixture);
+  the cell's URDF (``cell_urdf``: the Panda, the task's part in the hand, its fixture);
 - ``tf`` (tf2_msgs/TFMessage) at ``rate`` Hz while joint states come in: every link of that URDF relative
   to ``panda_link0``, at the latest state (the joints by name, or the first seven values in order when
   the driver names them otherwise, as an FR3's ``fr3_joint*``).
