@@ -2,7 +2,7 @@
 SHELL := /bin/bash
 ENV := source ./env.sh
 
-.PHONY: setup test lint bench bench-deps run run-franka clean
+.PHONY: setup test lint bench bench-deps run run-franka teach clean
 
 setup:  ## create .venv, install pinned packages, build ros2_ws, write env.sh (idempotent)
 	@scripts/setup.sh
@@ -34,6 +34,9 @@ run: setup  ## the whole stack learning the gear from a failing prior in simulat
 
 run-franka: setup  ## learning on the robot path: franky-sim's FR3 with the gear cell behind libfranka (15 iterations, ~28 min); ARGS="--robot <FCI address> --goal X Y Z" for a real arm
 	@$(ENV) && python -m nf_bringup.robot_run $(ARGS)
+
+teach: setup  ## record demonstrations as a bag by teleoperation through the stable law (gear_clamp, a scripted operator, ~2 min); ARGS="--operator keyboard" for you
+	@$(ENV) && python -m nf_bringup.teach $(ARGS)
 
 clean:  ## remove build products (keeps .venv)
 	rm -rf ros2_ws/build ros2_ws/install ros2_ws/log ros2_ws/.build.sha256 env.sh

@@ -196,3 +196,35 @@ def test_warm_changes_no_torque(arm):
     warmed.fault = "latched"
     warmed.warm(q, dq)  # a latched controller is left alone
     assert warmed.fault == "latched"
+
+
+def test_teleoperation_moves_the_anchor_at_most_its_speed_and_keeps_the_law(arm):
+    """The operator's target pulls the anchor x_ref (from the TCP at the episode's start) at most
+    ``speed`` m/s; the torque is the law's about that anchor; bad targets and states change nothing."""
+    ctrl = _controller(arm)
+    ctrl.set_teleop(0.1, 0.001)
+    ctrl.engage_teleop()
+    q, dq = Q0.copy(), np.zeros(7)
+    ctrl.step(q, dq)
+    tcp = arm.tcp_position(q)
+    np.testing.assert_allclose(ctrl.reference, tcp, atol=1e-12)  # the spring starts relaxed at the TCP
+    target = tcp + np.array([0.05, 0.0, 0.0])
+    ctrl.set_teleop_target(target)
+    for _ in range(100):  # 0.1 s at 0.1 m/s: 1 cm of the 5
+        tau = ctrl.step(q, dq).copy()
+    np.testing.assert_allclose(ctrl.reference, tcp + [0.01, 0.0, 0.0], atol=1e-12)
+    # the law about the moved anchor: the same evaluator's force with x_ref there
+    moved = _controller(arm)
+    moved.evaluator.move_reference(ctrl.reference)
+    np.testing.assert_allclose(tau, moved.step(q, dq), atol=1e-9)
+    with pytest.raises(ValueError, match="3 finite"):
+        ctrl.set_teleop_target(np.array([np.nan, 0.0, 0.0]))
+    tau = ctrl.step(np.full(7, np.nan), dq)  # a bad state: the safe hold, the anchor stays
+    assert np.all(np.isfinite(tau)) and ctrl.fault
+    np.testing.assert_allclose(ctrl.reference, tcp + [0.010, 0.0, 0.0], atol=1e-3)
+    ctrl.clear_fault()
+    ctrl.engage_teleop()  # the next episode: from its own TCP, no target
+    ctrl.step(q, dq)
+    np.testing.assert_allclose(ctrl.reference, tcp, atol=1e-12)
+    with pytest.raises(ValueError, match="speed"):
+        ctrl.set_teleop(-1.0)

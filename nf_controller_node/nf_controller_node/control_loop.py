@@ -381,6 +381,7 @@ class ControlLoop:
         if self.episode is not None:
             raise ValueError("an episode is already running")
         self.episode = run
+        self.controller.engage_teleop()
         self._episode_from = int(first_stamp_ns)
         self._episode_last = -1
         self._episode_world_reset = bool(world_was_reset)

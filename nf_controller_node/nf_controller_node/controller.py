@@ -191,6 +191,9 @@ class FlowController:
         self._q_anchor = np.zeros(n)  # joint position the safe hold's spring pulls to, rad
         self._anchored = False  # False: the next hold with a usable q anchors there
         self._scratch = [np.zeros(n), np.zeros(3), np.zeros(3), np.zeros(n), np.zeros(n)]  # warm(): outputs
+        self._teleop = (0.0, 0.001)  # teleoperation: anchor speed (m/s; 0: off) and tick period (s)
+        self._teleop_target: np.ndarray | None = None  # where the operator pulls the anchor, m
+        self._anchor: np.ndarray | None = None  # the anchor x_ref while teleoperated; None: at the next TCP
         self.set_law(law or TorqueLawConfig())
         if not self.law.gravity_compensation:
             # The driver compensates gravity (a Franka): the arm gets no command of ours before the
@@ -203,6 +206,7 @@ class FlowController:
     def set_evaluator(self, evaluator: FlowEvaluator) -> None:
         """Swap the flow (new policy parameters); call only between episodes."""
         self.evaluator = evaluator
+        self._anchor = None  # teleoperation: the new policy's anchor starts where the TCP is
         self._kernel_args = evaluator.kernel_args() if isinstance(evaluator, FlowEvaluator) else None
         if self._kernel_args is not None:
             evaluator.set_force_bound(self.law.potential_force_bound)
@@ -254,6 +258,57 @@ class FlowController:
         k, d = self._posture
         return (self.q_posture.copy(), k, d) if k > 0.0 else None
 
+    # -- teleoperation: the operator moves the spring's anchor ------------------------------
+    def set_teleop(self, speed: float, period: float = 0.001) -> None:
+        """Let an operator move the law's anchor x_ref (``set_teleop_target``) at most ``speed`` m/s,
+        ``period`` s per step; 0: off (x_ref is the policy's). The operator pulls a virtual spring on the
+        TCP: the law stays u = -J^T S [phi(x) - phi(x_ref)] - J^T D J xdot, whose energy only the
+        anchor's bounded motion can change, so the arm is as stable as under the policy. Only for a
+        policy evaluated by a ``FlowEvaluator``. Call between steps."""
+        if not (np.isfinite(speed) and speed >= 0.0 and np.isfinite(period) and period > 0.0):
+            raise ValueError(f"teleoperation speed must be finite and >= 0 m/s, period > 0 s: {speed}, {period}")
+        self._teleop = (float(speed), float(period))
+        self._anchor = None
+
+    def engage_teleop(self) -> None:
+        """At an episode's start: the anchor starts at the TCP (the spring relaxed) and waits for a target."""
+        self._anchor = None
+        self._teleop_target = None
+
+    def set_teleop_target(self, target: np.ndarray | None) -> None:
+        """Where the operator pulls the anchor (m, task frame; None: stay). Any thread. ``ValueError``
+        for a target that is not 3 finite numbers."""
+        if target is not None:
+            target = np.array(target, dtype=np.float64)
+            if target.shape != (3,) or not np.all(np.isfinite(target)):
+                raise ValueError(f"teleoperation target must be 3 finite numbers (m), got {target.tolist()}")
+        self._teleop_target = target  # one reference swap: the step sees the old target or the new one
+
+    @property
+    def reference(self) -> np.ndarray | None:
+        """The x_ref the law pulls to now (m; the teleoperated anchor while teleoperation is on), a copy."""
+        x_ref = getattr(self.evaluator, "x_ref", None)
+        return None if x_ref is None else np.array(x_ref)
+
+    def _teleop_step(self, q: np.ndarray) -> None:
+        """Move the anchor a step towards the operator's target (on the stepping thread)."""
+        speed, period = self._teleop
+        if not np.all(np.isfinite(q)):
+            return  # the step holds on this state
+        if self._anchor is None:
+            self.arm.kinematics(q)  # the TCP now: the spring starts relaxed
+            self._anchor = np.array(self.arm.x[:3])
+            self.evaluator.move_reference(self._anchor)
+        target = self._teleop_target
+        if target is None:
+            return
+        d = target - self._anchor
+        n = float(np.linalg.norm(d))
+        if n == 0.0:
+            return
+        self._anchor += d if n <= speed * period else d * (speed * period / n)
+        self.evaluator.move_reference(self._anchor)
+
     def clear_fault(self) -> None:
         """Re-arm after a fault (the caller has made sure the cause is gone). The next hold anchors
         where the arm is then: a person may have moved it, and the hold must not pull it back."""
@@ -284,6 +339,8 @@ class FlowController:
             return self._hold(q, dq, f"joint state has wrong size: q {q.shape}, dq {dq.shape}, want ({self.n},)")
         if self.fault:
             return self._hold(q, dq, self.fault)
+        if self._teleop[0] > 0.0 and self._kernel_args is not None:
+            self._teleop_step(q)
         arm, law = self.arm, self.law
         noise = self._no_noise if extra_force is None else extra_force
         if self._kernel_args is not None and arm.chain is not None:  # one compiled call

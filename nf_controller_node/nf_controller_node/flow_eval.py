@@ -335,7 +335,8 @@ class FlowEvaluator:
     phi(x_ref) and, with ``warmup``, triggers compilation / cache loading). Each method then
     costs one compiled call. Wrong-size or non-finite inputs raise ``ValueError``, as does a
     non-finite result. Not thread-safe (one shared scratch buffer); ``stiffness``, ``damping``,
-    ``x_ref`` and ``phi_ref`` are read-only copies (build a new evaluator to change them).
+    ``x_ref`` and ``phi_ref`` are read-only copies (``move_reference`` moves the anchor; build a new
+    evaluator for new weights or gains).
     """
 
     def __init__(
@@ -437,6 +438,18 @@ class FlowEvaluator:
         if status:
             self._raise(status, x)
         return out, out_jac
+
+    def move_reference(self, x_ref: np.ndarray) -> None:
+        """Move the spring's anchor to ``x_ref`` (m, dim values): x_ref and phi(x_ref) change, the flow
+        and the gains do not, so the law stays the same stable controller about a new equilibrium
+        (teleoperation moves it a little every tick). Uses the shared scratch buffer: call it on the
+        thread that calls ``force``. ``ValueError`` for a wrong-size or non-finite ``x_ref``."""
+        x = self._vec(x_ref, "x_ref")
+        d = self.dim
+        phi_ref = self.phi(x)  # raises before anything changes
+        self.x_ref[:] = x
+        self.phi_ref = phi_ref
+        self._consts[2 * d * d : 2 * d * d + d] = phi_ref
 
     def set_force_bound(self, bound: float) -> None:
         """Bound the potential's pull to ``bound`` N in the latent space (0: no bound, the plain

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PointStamped
 from nf_msgs.action import RunEpisode
 from nf_msgs.msg import ControllerStatus, RolloutChunk, TaskStatus
 from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
@@ -57,6 +58,7 @@ from nf_core.topics import (
     RUN_EPISODE,
     SIM_RESET,
     TASK_STATUS,
+    TELEOP_TARGET,
     stamp_label,
 )
 
@@ -94,6 +96,9 @@ PARAMETERS = {
     "policy_wait": (10.0, "s an episode waits for the policy version it asks for"),
     "reset_timeout": (60.0, "composed: s the driver may take to reset the world (a robot moves there)"),
     "diagnostics_period": (1.0, "s between /diagnostics messages"),
+    "teleop_speed": (0.0, "m/s: an operator pulls the law's anchor x_ref towards the points on teleop/target "
+                     "(geometry_msgs/PointStamped, base frame) at most this fast, from the TCP at each episode's "
+                     "start; 0: off, x_ref is the policy's"),
 }
 DRIVER_EFFORTS = ("measured", "command")
 # The law's settings that travel with the policy (nf_msgs/PolicyParameters): set here, they are ignored
@@ -190,6 +195,9 @@ class NFControllerNode(Node):
         self.create_service(Trigger, "~/clear_fault", self._on_clear_fault)
         self._chunk_pub = self.create_publisher(RolloutChunk, ROLLOUTS, qos.ROLLOUTS)
         self._reset_client = None
+        if p["teleop_speed"] > 0.0:
+            self.loop.controller.set_teleop(p["teleop_speed"], p["control_period"] or 0.001)
+            self.create_subscription(PointStamped, TELEOP_TARGET, self._on_teleop_target, state_qos)
         if composed:
             self.host.notify = self._post_drain
             self.create_timer(DRAIN_PERIOD, self._drain)
@@ -595,6 +603,14 @@ class NFControllerNode(Node):
 
         future.add_done_callback(report)
 
+    def _on_teleop_target(self, msg: PointStamped) -> None:
+        p = msg.point
+        try:
+            self.loop.controller.set_teleop_target(np.array([p.x, p.y, p.z]))
+        except ValueError as exc:
+            self.get_logger().error(f"teleoperation target ignored, the anchor stays: {exc}",
+                                    throttle_duration_sec=1.0)
+
     def _on_clear_fault(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         old = self.loop.fault if self.loop.controller.fault else ""
         self._on_driver_thread(self.loop.clear_fault)
@@ -637,10 +653,14 @@ class NFControllerNode(Node):
                                deadline_misses=loop.deadline_misses)
         msg.header.stamp = _stamp(self.host.last_stamp_ns)
         msg.header.frame_id = BASE_FRAME
+        run = loop.episode
+        if run is not None:
+            msg.episode_id = run.spec.episode_id
         if x is not None:
             msg.x = x.tolist()
-        if loop.policy is not None:
-            msg.x_ref = loop.policy.x_ref.tolist()
+        if loop.policy is not None:  # while teleoperated: the anchor the operator pulls
+            ref = loop.controller.reference if self.params["teleop_speed"] > 0.0 else None
+            msg.x_ref = (loop.policy.x_ref if ref is None else ref).tolist()
         self._status_pub.publish(msg)
         report = loop.take_rejection_report()  # rejections are counted per message, logged only here
         if report:

@@ -18,6 +18,7 @@ CONTROLLER_STATUS = "controller_status"  # nf_msgs/ControllerStatus
 POLICY_PARAMETERS = "policy_parameters"  # nf_msgs/PolicyParameters, relative: each arm its own
 DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray
 ROLLOUTS = "rollouts"  # nf_msgs/RolloutChunk, controller -> learner
+TELEOP_TARGET = "teleop/target"  # geometry_msgs/PointStamped, operator -> controller (teleop_speed > 0)
 
 RUN_EPISODE = "run_episode"  # nf_msgs/action/RunEpisode, served by the controller
 SIM_RESET = "sim_bridge/reset"  # nf_msgs/srv/ResetSim, served by the sim bridge

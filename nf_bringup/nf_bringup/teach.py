@@ -1,0 +1,305 @@
+"""``teach`` (``make teach``): record demonstrations as bags, by teleoperation through the stable law.
+
+The simulated arm and its controller (``nf_sim_stack``) run a teaching policy: the identity flow with
+soft gains, whose anchor x_ref the operator pulls (the controller's ``teleop_speed``: the anchor moves
+towards the points on ``teleop/target`` at most that fast, from the TCP at each episode's start). The
+operator thus pulls a virtual spring on the TCP and the arm stays under
+u = -J^T S [phi(x) - phi(x_ref)] - J^T D J xdot with the pull bounded (``--force-bound``): no
+command of the operator reaches the joints but through that law.
+
+Each demonstration is one episode (``run_episode``, a start drawn from the task file's starts) and the
+recorder writes them all into one ordinary MCAP bag of the run's topics (joint states, controller
+status with the anchor, targets, task status); ``fit_demos`` reads it back.
+
+    teach --task gear_clamp --demos 8                       # a scripted operator (stands in for a person)
+    teach --task gear_clamp --demos 3 --operator keyboard   # you, in real time: keys below
+
+Keys (``--operator keyboard``, real-time simulation): w/s +x/-x, a/d +y/-y, r/f up/down, by ``--step``
+(default 1 cm) from where the anchor is; the episode ends after ``--seconds``.
+
+Leaves ``<out>/bag`` (MCAP), ``<out>/demos.json`` (per demonstration: start seed, success, depth, final
+distance) and ``<out>/logs``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from nf_core.task_spec import TaskSpec, load_task
+
+from .processes import ManagedProcess, allocate_domain_id, ros_env, stop_on_signals
+from .stack import SIM_STACK_PARAMS, write_task_parameters
+
+DEMO_SEED_BASE = 500_000_000  # demonstration starts: their own seeds, apart from training's and evaluation's
+TEACH_GAINS = (300.0, 40.0)  # N/m, N s/m: the teaching spring S = 300 I, D = 40 I on the identity flow
+ARRIVED = 0.002  # m: the scripted operator goes on to the next waypoint once the anchor is this close
+KEYS = {"w": (0, 1.0), "s": (0, -1.0), "a": (1, 1.0), "d": (1, -1.0), "r": (2, 1.0), "f": (2, -1.0)}
+
+
+def scripted_waypoints(task: TaskSpec, start: np.ndarray) -> list[np.ndarray]:
+    """What a person would show from TCP ``start`` (m): with a clamp, towards it at the start's height
+    until the part's rim is 3 cm from its face, up while closing to 0.5 cm, over it 12 cm above its top
+    to above the fixture, and down onto it; without one, to 5 cm above the fixture and down."""
+    goal = task.goal_position
+    if task.clamp is None:
+        return [np.array([goal[0], goal[1], task.top[2] + 0.05]), goal]
+    rim = task.part.outer_radius if task.kind != "peg" else task.part.radius
+    face = task.clamp.center_x + task.clamp.half_thickness  # the side the starts are on (+x)
+    over = task.clamp.top + 0.12
+    return [np.array([face + rim + 0.03, start[1], start[2]]),
+            np.array([face + rim + 0.005, start[1], over]),
+            np.array([goal[0], goal[1], over - 0.03]),
+            goal]
+
+
+class ScriptedOperator:
+    """Pulls the anchor through ``scripted_waypoints``: the next one once the anchor is within ARRIVED."""
+
+    def __init__(self, task: TaskSpec) -> None:
+        self.task = task
+        self.path: list[np.ndarray] = []
+
+    def begin(self, tcp: np.ndarray) -> None:
+        """A new demonstration from TCP ``tcp``."""
+        self.path = scripted_waypoints(self.task, tcp)
+
+    def target(self, anchor: np.ndarray) -> np.ndarray | None:
+        """The point to pull to, given where the anchor is (None: nothing to do)."""
+        while len(self.path) > 1 and np.linalg.norm(anchor - self.path[0]) < ARRIVED:
+            self.path.pop(0)
+        return self.path[0] if self.path else None
+
+
+class KeyboardOperator:
+    """Moves the target by ``step`` m per key (``KEYS``) from the anchor; reads the terminal in cbreak mode."""
+
+    def __init__(self, step: float = 0.01) -> None:
+        self.step = step
+        self.pending: list[str] = []
+        self.goal: np.ndarray | None = None
+        self._lock = threading.Lock()
+
+    def begin(self, tcp: np.ndarray) -> None:
+        """A new demonstration: the target starts at the TCP."""
+        self.goal = np.array(tcp, dtype=float)
+
+    def press(self, key: str) -> None:
+        """One key (any thread)."""
+        with self._lock:
+            self.pending.append(key)
+
+    def target(self, anchor: np.ndarray) -> np.ndarray | None:
+        """The target after the keys pressed since the last call."""
+        with self._lock:
+            keys, self.pending = self.pending, []
+        for k in keys:
+            if k in KEYS and self.goal is not None:
+                axis, sign = KEYS[k]
+                self.goal[axis] += sign * self.step
+        return self.goal
+
+    def read_terminal(self, stop: threading.Event) -> None:
+        """Feed key presses from stdin until ``stop`` (a thread's body)."""
+        import select
+        import termios
+        import tty
+
+        fd = sys.stdin.fileno()
+        saved = termios.tcgetattr(fd)
+        try:
+            tty.setcbreak(fd)
+            while not stop.is_set():
+                if select.select([sys.stdin], [], [], 0.1)[0]:
+                    self.press(sys.stdin.read(1))
+        finally:
+            termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+
+
+def teaching_policy(task: TaskSpec, n_flow: int, n_hidden: int, activation: str, force_bound: float,
+                    version: int = 1) -> object:
+    """PolicyParameters of the teaching spring: the identity flow (all weights 0), S = 300 I, D = 40 I,
+    x_ref the task's goal (the anchor replaces it from the first tick), the pull bounded to ``force_bound`` N."""
+    from nf_core.flow_spec import FlowArchitecture
+    from nf_core.policy_params import PolicyLaw, PolicyParameters
+
+    arch = FlowArchitecture(dim=3, n_flow=n_flow, n_hidden=n_hidden, activation=activation)
+    s, d = TEACH_GAINS
+    return PolicyParameters(arch=arch, weights=np.zeros(arch.n_params), log_std=np.zeros(1),
+                            stiffness=s * np.eye(3), damping=d * np.eye(3), x_ref=task.goal_position,
+                            version=version, law=PolicyLaw(potential_force_bound=force_bound,
+                                                           held_part=task.part.text()))
+
+
+def run_demonstrations(task: TaskSpec, operator: ScriptedOperator | KeyboardOperator, n: int, seconds: float,
+                       first_seed: int, force_bound: float, log: Callable[[str], None] = print) -> list[dict]:
+    """Publish the teaching policy, then run ``n`` episodes of ``seconds`` s while ``operator`` pulls the
+    anchor; returns each one's result. Needs rclpy initialised and the arm stack running."""
+    import rclpy
+    from geometry_msgs.msg import PointStamped
+    from nf_msgs.action import RunEpisode
+    from nf_msgs.msg import ControllerStatus
+    from nf_msgs.msg import PolicyParameters as PolicyParametersMsg
+    from rclpy.action import ActionClient
+    from rclpy.executors import SingleThreadedExecutor
+
+    from nf_core import qos
+    from nf_core.topics import CONTROLLER_STATUS, POLICY_PARAMETERS, RUN_EPISODE, TELEOP_TARGET
+
+    node = rclpy.create_node("teach")
+    status: dict[str, object] = {"running": 0}
+
+    def on_status(m: ControllerStatus) -> None:
+        status["last"] = m
+        status["running"] = status["running"] + 1 if m.mode == ControllerStatus.MODE_RUNNING else 0
+
+    node.create_subscription(ControllerStatus, CONTROLLER_STATUS, on_status, qos.STATE)
+    target_pub = node.create_publisher(PointStamped, TELEOP_TARGET, qos.STATE)
+    policy_pub = node.create_publisher(PolicyParametersMsg, POLICY_PARAMETERS, qos.POLICY)
+    client = ActionClient(node, RunEpisode, RUN_EPISODE)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    results = []
+    try:
+        policy = teaching_policy(task, 1, 16, "gelu", force_bound)
+        policy_pub.publish(policy.fill_msg(PolicyParametersMsg()))
+        if not client.wait_for_server(timeout_sec=120.0):
+            raise RuntimeError("no run_episode action server after 120 s: is the arm stack up? (see logs/)")
+        for k in range(n):
+            seed = first_seed + k
+            goal = RunEpisode.Goal(policy_version=policy.version, seed=seed, noise_seed=-1, duration=seconds,
+                                   deterministic=True)
+            sent = client.send_goal_async(goal)
+            while not sent.done():
+                time.sleep(0.01)
+            handle = sent.result()
+            if not handle.accepted:
+                raise RuntimeError(f"demonstration {k}: the controller refused the episode (see logs/arm.log)")
+            result = handle.get_result_async()
+            began = False
+            while not result.done():
+                s = status.get("last")
+                # from the third status of the episode on: its anchor (x_ref) started at the TCP of the start
+                if s is not None and status["running"] >= 3 and len(s.x_ref) == 3:
+                    anchor = np.array(s.x_ref)
+                    if not began:
+                        operator.begin(anchor)
+                        began = True
+                    point = operator.target(anchor)
+                    if point is not None:
+                        msg = PointStamped()
+                        msg.header.frame_id = "panda_link0"
+                        msg.point.x, msg.point.y, msg.point.z = (float(v) for v in point)
+                        target_pub.publish(msg)
+                time.sleep(0.02)
+            r = result.result().result
+            row = {"demo": k, "seed": seed, "completed": bool(r.completed), "success": bool(r.success),
+                   "insertion_depth": float(r.insertion_depth), "final_distance": float(r.final_distance),
+                   "episode_id": int(r.episode_id), "message": r.message}
+            results.append(row)
+            log(f"[teach] demonstration {k + 1}/{n} (start seed {seed}): "
+                f"{'inserted' if r.success else 'not inserted'}, depth {1e3 * r.insertion_depth:.1f} mm, "
+                f"{1e3 * r.final_distance:.1f} mm from the goal" + ("" if r.completed else f"; aborted: {r.message}"))
+            status.pop("last", None)
+            status["running"] = 0
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+    return results
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script ``teach``."""
+    ap = argparse.ArgumentParser(prog="teach", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--task", default="gear_clamp", help="built-in task or task file (default gear_clamp)")
+    ap.add_argument("--config", type=Path, default=Path("config/gear_clamp.yaml"),
+                    help="the stack's parameters file (config/sim.yaml beside it comes first)")
+    ap.add_argument("--demos", type=int, default=8, help="demonstrations to record (default 8)")
+    ap.add_argument("--operator", choices=("scripted", "keyboard"), default="scripted")
+    ap.add_argument("--seconds", type=float, default=7.0, help="s per demonstration (default 7)")
+    ap.add_argument("--speed", type=float, default=0.15, help="m/s the anchor moves at most (default 0.15)")
+    ap.add_argument("--step", type=float, default=0.01, help="m per key (keyboard; default 0.01)")
+    ap.add_argument("--force-bound", type=float, default=40.0,
+                    help="N: the teaching spring's pull is bounded to this (default 40)")
+    ap.add_argument("--first-seed", type=int, default=DEMO_SEED_BASE, help="start seed of the first demonstration")
+    ap.add_argument("--out", type=Path, default=None, help="folder (default runs/teach-<date-time>)")
+    ap.add_argument("--domain-id", type=int, default=None)
+    args = ap.parse_args(argv)
+    if args.demos < 1 or args.seconds <= 0.0 or args.speed <= 0.0 or args.force_bound <= 0.0:
+        ap.error("--demos, --seconds, --speed and --force-bound must be > 0")
+    try:
+        task = load_task(args.task)
+    except ValueError as exc:
+        ap.error(str(exc))
+    keyboard = args.operator == "keyboard"
+    if keyboard and not sys.stdin.isatty():
+        ap.error("--operator keyboard reads keys from a terminal; stdin is not one")
+    out = args.out or Path("runs") / time.strftime("teach-%Y%m%d-%H%M%S")
+    out.mkdir(parents=True, exist_ok=True)
+    overlay = write_task_parameters(args.task, out)
+    # an operator works in real time (the scripted one too: it watches the anchor at 50 Hz); a file, last,
+    # since the files' /**/ settings would win over -p
+    teaching = out / "teach_parameters.yaml"
+    teaching.write_text(yaml.safe_dump({
+        "/**/sim_bridge": {"ros__parameters": {"mode": "realtime"}},
+        "/**/nf_controller": {"ros__parameters": {"teleop_speed": float(args.speed), "status_rate": 50.0,
+                                                  "idle_mode": "hold", "max_consecutive_misses": 20}}}))
+    params = ["--ros-args"] + [a for f in (args.config.resolve().parent / SIM_STACK_PARAMS, args.config, overlay,
+                                           teaching) for a in ("--params-file", str(f))]
+    domain_id = args.domain_id if args.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID")
+                                                                       or allocate_domain_id())
+    env = ros_env(domain_id, sources=False)
+    os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE") if k in env})
+    stop_on_signals()
+    py = sys.executable
+    watch = ("recording /joint_states (", "recording /controller_status (")
+    procs = {"recorder": ManagedProcess("recorder", [py, "-m", "nf_bags.record", "-o", str(out / "bag")], env,
+                                        out / "logs", watch=watch),
+             "arm": ManagedProcess("arm", [py, "-m", "nf_bringup.sim_stack", *params], env, out / "logs")}
+    operator = KeyboardOperator(args.step) if keyboard else ScriptedOperator(task)
+    stop = threading.Event()
+    if keyboard:
+        print("[teach] keys: w/s +x/-x, a/d +y/-y, r/f up/down "
+              f"({100 * args.step:g} cm each); {args.seconds:g} s per demonstration", flush=True)
+        threading.Thread(target=operator.read_terminal, args=(stop,), daemon=True).start()
+    print(f"[teach] {args.demos} demonstration(s) of {args.task} by the {args.operator} operator into {out / 'bag'}; "
+          f"ROS_DOMAIN_ID {domain_id} (loopback only)", flush=True)
+    import rclpy
+
+    code = 0
+    rclpy.init()
+    try:
+        missing = procs["recorder"].wait_for_watched(120.0, [procs["arm"]], texts=watch)
+        if missing:
+            print(f"[teach] warning: the recorder is not recording {', '.join(missing)} yet", flush=True)
+        results = run_demonstrations(task, operator, args.demos, args.seconds, args.first_seed, args.force_bound)
+        (out / "demos.json").write_text(json.dumps({"task": args.task, "operator": args.operator,
+                                                    "speed": args.speed, "seconds": args.seconds,
+                                                    "demos": results}, indent=1))
+        ok = sum(r["success"] for r in results)
+        print(f"[teach] {ok}/{len(results)} demonstrations inserted; bag {out / 'bag'}; next: "
+              f"python -m learner_node.fit_demos {out / 'bag'} --config {args.config}", flush=True)
+    except (RuntimeError, KeyboardInterrupt) as exc:
+        print(f"[teach] stopped: {exc or 'interrupted'}", flush=True)
+        code = 1
+    finally:
+        stop.set()
+        rclpy.try_shutdown()
+        procs["arm"].stop()
+        procs["recorder"].stop()
+    return code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
