@@ -40,10 +40,11 @@ def test_config_selects_the_task():
     cfg = TrainConfig.from_sources(CONFIG)
     assert cfg.task == "gear_clamp" and cfg.dim == 3
     # the same learner as gear_learn.yaml: only the task differs (and the force bound is off), with the
-    # spread the ablation was measured with (0.5, no settling)
+    # spread the ablation was measured with (0.5, no settling) and the cross-entropy step of refinement
     learn = TrainConfig.from_sources(CONFIG.parent / "gear_learn.yaml",
                                      {"task": "gear_clamp", "potential_force_bound": 0.0, "param_sigma_gains": 0.5,
-                                      "param_settle_rule": "mean", "param_sigma_settle": 1.0, "iterations": 100})
+                                      "param_settle_rule": "mean", "param_sigma_settle": 1.0, "iterations": 100,
+                                      "param_elite": "minority_returns"})
     assert cfg == learn
 
 

@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("nf_core", "learner_node", "nf_controller_node", "sim_bridge_node", "franka_driver", "nf_bringup",
             "bags", "msgs")
 SUFFIXES = {".py", ".yaml", ".msg", ".srv", ".action", ".md", ".xml", ".cfg", ".txt"}
-REFERENCE_DOCS = ("docs/controller.md", "docs/nodes.md", "docs/simulation.md", "docs/fleet.md",
+REFERENCE_DOCS = ("docs/controller.md", "docs/nodes.md", "docs/simulation.md", "docs/fleet.md", "docs/teach.md",
                   "docs/hardware.md", "bags/README.md")
 PATTERNS = {
     "a date": re.compile(r"\b20[0-9]{2}-[01][0-9]-[0-3][0-9]\b"),

@@ -160,3 +160,44 @@ def fit_flow_to_demos(flow: RealNVPFlow, x_ref: np.ndarray, scale: float, points
         end = float(loss_of(w))
     cos = latent_cosines(flow, x_ref, points, tangents, rates)
     return FitResult(normalised, w0, physical, start, end, float(cos.mean()))
+
+
+def shift_profile(n: int, centre: float, width: float = 0.2) -> np.ndarray:
+    """Weights (n,) along a path of n points by arc-length fraction: a bump exp(-((s - centre) / width)^2)
+    times s (1 - s) / 0.25, so a path's start and end stay where they are."""
+    s = np.linspace(0.0, 1.0, n)
+    return np.exp(-(((s - centre) / width) ** 2)) * s * (1.0 - s) / 0.25
+
+
+SHIFT_CENTRES = (0.3, 0.6)  # arc-length fractions of the path where demo_basis moves it (early, late)
+
+
+def demo_basis(flow: RealNVPFlow, x_ref: np.ndarray, scale: float, paths: list[np.ndarray], shift: float = 0.01,
+               iterations: int = 60, **fit: object) -> np.ndarray:
+    """Directions in the normalised flow weights (n_params, 6) along which the fitted ``flow`` changes when
+    every demonstration moves: by ``shift`` m along x, y or z, around 30 % or 60 % of its length
+    (``shift_profile``; start and goal stay). Each column is (refit of the moved paths) - (refit of the
+    same paths), both ``iterations`` warm Adam steps from ``flow``'s weights with the same ``fit``
+    settings as ``fit_flow_to_demos``, so one unit along it is the fit of demonstrations moved by ``shift``.
+    ``flow`` is not changed. Exploring along these is exploring the demonstrations' space: every draw is
+    still a flow, hence a stable controller."""
+    import copy
+
+    def refit(moved: list[np.ndarray]) -> np.ndarray:
+        f = copy.deepcopy(flow)
+        samples = [demo_samples(p) for p in moved]
+        points = np.concatenate([p for p, _ in samples])
+        tangents = np.concatenate([t for _, t in samples])
+        return fit_flow_to_demos(f, x_ref, scale, points, tangents, iterations=iterations, **fit).normalised
+
+    base = refit(paths)
+    cols = []
+    for centre in SHIFT_CENTRES:
+        for axis in range(3):
+            moved = []
+            for p in paths:
+                q = np.array(p, dtype=np.float64)
+                q[:, axis] += shift * shift_profile(len(q), centre)
+                moved.append(q)
+            cols.append(refit(moved) - base)
+    return np.stack(cols, axis=1)

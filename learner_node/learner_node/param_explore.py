@@ -152,10 +152,34 @@ class ParamExploration(nn.Module):
         if self.explore_flow:
             pol.flow.load_flat(self.flow_weights(self.flow_mu.detach().numpy()))
 
+    def use_basis(self, basis: np.ndarray | torch.Tensor, sigma: float | None = None) -> None:
+        """Explore the flow along the columns of ``basis`` (n_params, k) over all its weights (explored
+        coordinates), from the policy's flow as it is now (the mean's offset 0), with std ``sigma`` (None:
+        as it is). E.g. the demonstrations' directions (``flow_fit.demo_basis``): a unit along a column is
+        the change of the fitted flow when a demonstration moves by a set distance. Call
+        ``restart_optimizer`` of the update rule afterwards (the mean is a new parameter)."""
+        basis = torch.as_tensor(np.asarray(basis, dtype=np.float64))
+        n = self.policy[0].arch.n_params
+        if basis.ndim != 2 or basis.shape[0] != n or not bool(torch.isfinite(basis).all()):
+            raise ValueError(f"a flow basis must be finite, of shape ({n}, k), got {tuple(basis.shape)}")
+        self._flow_mask = np.ones(n, dtype=bool)
+        self.flow_basis = basis
+        self.flow_base = torch.from_numpy(self._to_explored(self.policy[0].flow.to_flat()))
+        k = basis.shape[1]
+        self.flow_mu = nn.Parameter(torch.zeros(k, dtype=torch.float64))
+        self.n_flow = k
+        self.explore_flow = True
+        if sigma is not None or not self.log_sigma_flow.numel():
+            self.log_sigma_flow = nn.Parameter(torch.full((1,), math.log(sigma or 1.0), dtype=torch.float64))
+
     def load_state_dict(self, state: dict, strict: bool = True, assign: bool = False) -> object:
         """As nn.Module's; a state without the flow entries (written before the flow could be explored
-        in its own coordinates, hence gains only) keeps this explorer's own."""
+        in its own coordinates, hence gains only) keeps this explorer's own; a state whose basis spans the
+        whole flow (``use_basis``) brings it along."""
         state = dict(state)
+        basis = state.get("flow_basis")
+        if basis is not None and tuple(basis.shape) != tuple(self.flow_basis.shape):
+            self.use_basis(basis)
         for key in ("flow_base", "flow_mu", "adv_rms_sum", "adv_rms_count"):
             if key not in state and not (key == "flow_mu" and self.explore_flow):
                 state[key] = getattr(self, key).detach().clone()

@@ -170,8 +170,11 @@ class ParamSpacePPO:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore ``state_dict``'s keys."""
-        self.optimizer.load_state_dict(state["optimizer"])
+        shape = tuple(self.explorer.flow_basis.shape)
         self.explorer.load_state_dict(state["explorer"])
+        if tuple(self.explorer.flow_basis.shape) != shape:  # another basis (use_basis): a new mean parameter
+            self.restart_optimizer()
+        self.optimizer.load_state_dict(state["optimizer"])
 
 
 def better_by_return(episodes: list[EpisodeRecord | None]) -> list[int]:

@@ -454,6 +454,11 @@ class Trainer:
         self.update_rule = self._make_update_rule()  # centred on the loaded flow and gains, in this run's units
         assert self.explorer is not None
         out = []
+        basis = stored.get("flow_basis")
+        if basis is not None and basis.shape[0] == self.policy.arch.n_params and self.cfg.param_sigma_flow > 0.0:
+            # the checkpoint explores its flow along its own directions (fit_demos: the demonstrations')
+            self.explorer.use_basis(basis)
+            out.append(f"the flow along the checkpoint's {basis.shape[1]} directions")
         with torch.no_grad():
             for name, label in (("log_sigma_gains", "ln S, ln D"), ("log_sigma_flow", "flow")):
                 mine = getattr(self.explorer, name)
