@@ -62,10 +62,10 @@ def flow_change(out: Path, png: Path | None) -> dict:
     """How far refinement moved each flow + gains run's flow from the fitted prior (normalised weights, the
     units learning explores), and V before and after (seed 0 of each variant) on the held-out starts."""
     import numpy as np
+    from nf_bags.fit_demos import demo_paths, evaluate, gains_text, plot_landscape
 
     from learner_node.analysis.flow_landscape import load_policy
     from learner_node.config import TrainConfig
-    from learner_node.fit_demos import demo_paths, evaluate, gains_text, plot_landscape
     from learner_node.flow import rescale_flow_weights
     from learner_node.trainer import Trainer
     from nf_core.task_spec import load_task
@@ -117,7 +117,7 @@ def main() -> None:
         run([sys.executable, "-m", "nf_bringup.teach", "--demos", str(args.demos), "--out", str(out / "teach")],
             out / "teach.log")
         results["teach"] = json.loads((out / "teach" / "demos.json").read_text())
-        run([sys.executable, "-m", "learner_node.fit_demos", str(out / "teach" / "bag"), "--config", str(CONFIG),
+        run([sys.executable, "-m", "nf_bags.fit_demos", str(out / "teach" / "bag"), "--config", str(CONFIG),
              "--out", str(out / "fit")], out / "fit.log")
         results["fit"] = json.loads((out / "fit" / "fit.json").read_text())
         init = ["--set", f"init_checkpoint={out / 'fit' / 'checkpoint.pt'}"]

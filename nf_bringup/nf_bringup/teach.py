@@ -289,7 +289,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                                     "demos": results}, indent=1))
         ok = sum(r["success"] for r in results)
         print(f"[teach] {ok}/{len(results)} demonstrations inserted; bag {out / 'bag'}; next: "
-              f"python -m learner_node.fit_demos {out / 'bag'} --config {args.config}", flush=True)
+              f"python -m nf_bags.fit_demos {out / 'bag'} --config {args.config}", flush=True)
     except (RuntimeError, KeyboardInterrupt) as exc:
         print(f"[teach] stopped: {exc or 'interrupted'}", flush=True)
         code = 1

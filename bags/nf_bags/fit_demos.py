@@ -10,7 +10,7 @@ regulariser), the gains are set, and the policy is written as an ordinary checkp
 refine it. Whatever the fit gives, the policy is the provably stable controller (a bijection phi for any
 weights, S and D positive definite).
 
-    python -m learner_node.fit_demos runs/teach-X/bag --config config/gear_clamp.yaml --out runs/teach-X/fit
+    python -m nf_bags.fit_demos runs/teach-X/bag --config config/gear_clamp.yaml --out runs/teach-X/fit
 
 Writes ``checkpoint.pt``, ``fit.json`` (the demonstrations used and left out, the fit's numbers, the
 prior's deterministic evaluation on the held-out starts) and ``landscape.png`` (V on the vertical slice
@@ -28,12 +28,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from learner_node.config import TrainConfig
+from learner_node.flow_fit import demo_basis, demo_samples, fit_flow_to_demos, latent_cosines
+from learner_node.policy import NFPolicy
+from learner_node.trainer import EVAL_SEED_BASE, Trainer, make_evaluator
 from nf_core.task_spec import TaskSpec, load_task
-
-from .config import TrainConfig
-from .flow_fit import demo_basis, demo_samples, fit_flow_to_demos, latent_cosines
-from .policy import NFPolicy
-from .trainer import EVAL_SEED_BASE, Trainer, make_evaluator
 
 RUNNING = 1  # nf_msgs/ControllerStatus.MODE_RUNNING
 TELEPORT = 0.02  # m between two recorded states: a simulator's reset, not a motion
@@ -47,7 +46,7 @@ DEMO_DAMPING = (40.0, 40.0, 100.0)
 
 def episode_windows(bag: str | Path) -> list[tuple[int, int]]:
     """(first, last) stamp (ns) of each episode the controller's status reports running (by episode id)."""
-    from nf_bags.reader import CONTROLLER_STATUS, read_messages, stamp_ns
+    from .reader import CONTROLLER_STATUS, read_messages, stamp_ns
 
     windows: list[list[int]] = []
     last = None  # the episode id of the previous status (None: not running)
@@ -65,10 +64,10 @@ def episode_windows(bag: str | Path) -> list[tuple[int, int]]:
 def demo_paths(bag: str | Path, task: TaskSpec) -> list[np.ndarray]:
     """TCP paths (m, (n, 3) each) of the demonstrations in ``bag``: the joint states of each episode (or,
     without episodes, of the whole bag) through the forward kinematics of the arm holding ``task``'s part."""
-    from nf_bags.reader import joint_trajectory
-
     from nf_controller_node.arm_model import ArmModel
     from nf_core.task_spec import held_part_inertia
+
+    from .reader import joint_trajectory
 
     traj = joint_trajectory(bag)
     if len(traj.stamp_ns) == 0:
