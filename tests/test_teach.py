@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nf_bringup.teach import DEMO_SEED_BASE, ScriptedOperator, scripted_waypoints, teaching_policy
+from nf_bringup.teach import DEMO_SEED_BASE, KeyboardOperator, ScriptedOperator, scripted_waypoints, teaching_policy
 from nf_core.task_spec import load_task
 
 CLAMP = load_task("gear_clamp")
@@ -36,6 +36,16 @@ def test_scripted_operator_moves_on_only_when_the_anchor_arrived():
     assert op.target(start) is first  # not there yet: the same target
     second = op.target(first + 0.001)
     assert second is not None and not np.allclose(second, first)
+
+
+def test_keyboard_operator_steps_the_target_from_the_tcp():
+    op = KeyboardOperator(step=0.01)
+    tcp = np.array([0.7, 0.0, 0.12])
+    op.begin(tcp)
+    for key in "wwrdx":  # +x twice, up, -y, and a key that means nothing
+        op.press(key)
+    np.testing.assert_allclose(op.target(tcp), tcp + [0.02, -0.01, 0.01])
+    np.testing.assert_allclose(op.target(tcp), tcp + [0.02, -0.01, 0.01])  # no new keys: it stays
 
 
 def test_teaching_policy_is_the_identity_flow_with_a_bounded_spring():
