@@ -30,7 +30,7 @@ bench-deps: setup
 	fi
 
 run: setup  ## the whole stack learning the gear from a failing prior in simulation (composed, lockstep, 30 iterations, ~5 min); ARGS="--iterations 10" etc.
-	@$(ENV) && python -m nf_bringup.stack --config config/gear_learn.yaml $(ARGS)
+	@$(ENV) && python -m nf_bringup.stack $(ARGS)
 
 run-franka: setup  ## learning on the robot path: franky-sim's FR3 with the gear cell behind libfranka (15 iterations, ~28 min); ARGS="--robot <FCI address> --goal X Y Z" for a real arm
 	@$(ENV) && python -m nf_bringup.robot_run $(ARGS)
