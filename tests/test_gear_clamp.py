@@ -103,3 +103,23 @@ def test_prior_runs_into_the_clamp():
     assert rec.x[:, 2].max() < CLAMP_HI[2] - 0.05  # never lifted towards its top
     assert np.abs(rec.xdot[-1]).max() < 0.01  # at rest there
     assert not rec.final_success
+
+
+def test_in_process_rollout_holds_where_the_arm_controller_would():
+    """An episode whose joint state leaves the range the controller on the arm accepts (5 deg beyond a
+    limit) gets that controller's answer in process too: a fault and the safe hold, not a success."""
+    trainer = Trainer(TrainConfig.from_sources(CONFIG, {"stiffness": 400.0}))
+    runner = trainer.runner
+    steps = [0]
+
+    def push_wrist_past_its_limit() -> None:
+        steps[0] += 1
+        if steps[0] == 200:  # 0.2 s in: joint 6 just past what ControlLoop accepts
+            runner.env.data.qpos[5] = panda_spec.Q_PLAUSIBLE_MAX[5] + 0.01
+
+    runner.on_step = push_wrist_past_its_limit
+    rec = runner.run_episode(make_evaluator(trainer.policy), None, None, None)
+    assert rec.faults == 1 and not rec.final_success
+    assert "implausible joint state" in runner.controller.fault
+    runner.on_step = None
+    assert runner.run_episode(make_evaluator(trainer.policy), None, None, None).faults == 0  # cleared per episode

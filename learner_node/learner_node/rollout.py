@@ -31,10 +31,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from nf_controller_node.arm_model import ArmModel
-from nf_controller_node.controller import FlowController
+from nf_controller_node.controller import FlowController, state_problem
 from nf_controller_node.torque_law import TorqueLawConfig, excess_norm
 from nf_core.episode import EpisodeRun, EpisodeSpec
 from nf_core.friction import FrictionRanges
+from nf_core.panda_spec import DQ_PLAUSIBLE_MAX, Q_PLAUSIBLE_MAX, Q_PLAUSIBLE_MIN
 from nf_core.reward import RewardWeights
 from nf_core.task_spec import held_part_inertia
 from sim_bridge_node.env import InsertionEnv
@@ -187,6 +188,10 @@ class RolloutRunner:
         total, fault = 0.0, 0
         for j in range(steps):
             had_fault = bool(ctrl.fault)
+            if not had_fault:  # the state check of the controller on the arm (ControlLoop): it holds there
+                problem = state_problem(env.q, env.dq, Q_PLAUSIBLE_MIN, Q_PLAUSIBLE_MAX, DQ_PLAUSIBLE_MAX)
+                if problem:
+                    ctrl.fault = f"implausible joint state (code {problem}): the controller on the arm holds here"
             tau = ctrl.step(env.q, env.dq, eps)
             fault += int(bool(ctrl.fault) and not had_fault)
             torque = excess_norm(tau, arm.g)
