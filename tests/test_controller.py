@@ -228,3 +228,4 @@ def test_teleoperation_moves_the_anchor_at_most_its_speed_and_keeps_the_law(arm)
     np.testing.assert_allclose(ctrl.reference, tcp, atol=1e-12)
     with pytest.raises(ValueError, match="speed"):
         ctrl.set_teleop(-1.0)
+

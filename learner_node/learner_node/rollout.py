@@ -188,11 +188,12 @@ class RolloutRunner:
         total, fault = 0.0, 0
         for j in range(steps):
             had_fault = bool(ctrl.fault)
+            q, dq = env.q, env.dq
             if not had_fault:  # the state check of the controller on the arm (ControlLoop): it holds there
-                problem = state_problem(env.q, env.dq, Q_PLAUSIBLE_MIN, Q_PLAUSIBLE_MAX, DQ_PLAUSIBLE_MAX)
+                problem = state_problem(q, dq, Q_PLAUSIBLE_MIN, Q_PLAUSIBLE_MAX, DQ_PLAUSIBLE_MAX)
                 if problem:
                     ctrl.fault = f"implausible joint state (code {problem}): the controller on the arm holds here"
-            tau = ctrl.step(env.q, env.dq, eps)
+            tau = ctrl.step(q, dq, eps)
             fault += int(bool(ctrl.fault) and not had_fault)
             torque = excess_norm(tau, arm.g)
             if run is not None:

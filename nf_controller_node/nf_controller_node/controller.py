@@ -295,19 +295,22 @@ class FlowController:
         speed, period = self._teleop
         if not np.all(np.isfinite(q)):
             return  # the step holds on this state
-        if self._anchor is None:
-            self.arm.kinematics(q)  # the TCP now: the spring starts relaxed
-            self._anchor = np.array(self.arm.x[:3])
+        try:
+            if self._anchor is None:
+                self.arm.kinematics(q)  # the TCP now: the spring starts relaxed
+                self._anchor = np.array(self.arm.x[:3])
+                self.evaluator.move_reference(self._anchor)
+            target = self._teleop_target
+            if target is None:
+                return
+            d = target - self._anchor
+            n = float(np.linalg.norm(d))
+            if n == 0.0:
+                return
+            self._anchor += d if n <= speed * period else d * (speed * period / n)
             self.evaluator.move_reference(self._anchor)
-        target = self._teleop_target
-        if target is None:
-            return
-        d = target - self._anchor
-        n = float(np.linalg.norm(d))
-        if n == 0.0:
-            return
-        self._anchor += d if n <= speed * period else d * (speed * period / n)
-        self.evaluator.move_reference(self._anchor)
+        except ValueError as exc:  # phi not finite at the anchor: the step holds, the loop goes on
+            self.fault = f"teleoperation anchor: {exc}"
 
     def clear_fault(self) -> None:
         """Re-arm after a fault (the caller has made sure the cause is gone). The next hold anchors
@@ -341,6 +344,8 @@ class FlowController:
             return self._hold(q, dq, self.fault)
         if self._teleop[0] > 0.0 and self._kernel_args is not None:
             self._teleop_step(q)
+            if self.fault:
+                return self._hold(q, dq, self.fault)
         arm, law = self.arm, self.law
         noise = self._no_noise if extra_force is None else extra_force
         if self._kernel_args is not None and arm.chain is not None:  # one compiled call

@@ -195,6 +195,8 @@ class NFControllerNode(Node):
         self.create_service(Trigger, "~/clear_fault", self._on_clear_fault)
         self._chunk_pub = self.create_publisher(RolloutChunk, ROLLOUTS, qos.ROLLOUTS)
         self._reset_client = None
+        if not p["teleop_speed"] >= 0.0:
+            raise ValueError(f"teleop_speed must be >= 0 m/s (0: off), got {p['teleop_speed']}")
         if p["teleop_speed"] > 0.0:
             self.loop.controller.set_teleop(p["teleop_speed"], p["control_period"] or 0.001)
             self.create_subscription(PointStamped, TELEOP_TARGET, self._on_teleop_target, state_qos)
