@@ -5,6 +5,7 @@ episode asked for during the error), a policy whose x_ref is not the configured 
 from __future__ import annotations
 
 import logging
+import re
 import time
 
 import numpy as np
@@ -235,3 +236,127 @@ def test_fit_loop_gives_the_loop_the_fr3s_ranges_instead_of_the_pandas():
     assert "implausible" in fault
     law = loop.controller.law
     assert np.all(law.torque_limits <= FR3.torque_limits)
+
+
+class HandRobot(FakeRobot):
+    """A FakeRobot moved by a hand: while ``hand_dq`` is set the joints move at it whatever the command;
+    keeps every command."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.hand_dq: np.ndarray | None = None
+        self.commands: list[np.ndarray] = []
+
+    def writeOnce(self, torques: _Torques) -> None:
+        self.commands.append(np.asarray(torques.tau_J, dtype=float))
+        if self.hand_dq is None:
+            super().writeOnce(torques)
+        else:
+            self.dq = self.hand_dq.copy()
+            self.q = self.q + 0.001 * self.dq
+
+
+def test_hand_guiding_commands_zero_torque_then_the_hold_takes_over_from_zero_where_the_hand_left_the_arm():
+    robot = HandRobot()
+    driver, loop, host = _rig(robot, guide=True)
+    ctrl = loop.controller
+    driver.start(logging.getLogger("franka-loop"))
+    try:
+        x_ref = loop.policy.x_ref + np.array([0.05, 0.0, 0.0])  # a pull of 15 N: the episode's law is not zero
+        run = _episode(x_ref, seconds=0.6)
+        driver.begin_episode(0, run).result(timeout=20)
+        first = len(robot.commands)
+        robot.hand_dq = np.array([0.0, 0.2, 0.0, 0.1, 0.0, 0.0, 0.0])  # a person moves the arm
+        time.sleep(0.3)
+        robot.hand_dq = np.zeros(7)
+        assert _wait(lambda: loop.episode is None)
+        ends = [e for e in host.drain() if e.kind == EPISODE_END]
+        assert ends and ends[-1].text == "", "a guided episode that stays within the limits completes"
+        left_at = robot.q.copy()
+        robot.hand_dq = None  # let go
+        assert _wait(lambda: len(robot.commands) > first + 900)
+        anchor = host.call(lambda: ctrl.hold_anchor).result(timeout=5)
+    finally:
+        driver.stop()
+    cmds = np.array(robot.commands[:-1])  # the last: the stop's motion-finished zero
+    steps = np.abs(np.diff(cmds, axis=0)).max(axis=1)
+    assert steps.max() <= 1.0 + 1e-9, "no command steps by more than the 1 Nm per ms rate limit"
+    guided = cmds[first + 50 : first + 550]
+    assert np.abs(guided).max() == 0.0, "zero torque while guided (the robot adds gravity)"
+    assert driver.guides == 1 and driver.guide_stops == 0
+    np.testing.assert_allclose(anchor, left_at, atol=2e-3)  # held where the hand left it, not where it began
+    assert np.abs(anchor - Q0).max() > 0.02
+
+
+@pytest.mark.parametrize("case", ["speed", "limit", "time"])
+def test_hand_guiding_stops_into_the_hold_on_a_fast_joint_a_joint_limit_or_its_time(case):
+    robot = HandRobot()
+    extra = {"guide_timeout": 0.2} if case == "time" else {}
+    driver, loop, host = _rig(robot, guide=True, **extra)
+    driver.start(logging.getLogger("franka-loop"))
+    try:
+        driver.begin_episode(0, _episode(loop.policy.x_ref, seconds=2.0)).result(timeout=20)
+        if case == "speed":
+            robot.hand_dq = np.array([0.0, 0.0, 1.3, 0.0, 0.0, 0.0, 0.0])
+        elif case == "limit":  # joint 4 towards its upper limit (-0.0698 on the FR3), 0.5 rad/s
+            robot.hand_dq = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0])
+            robot.q[3] = FR3.q_max[3] - 0.15
+        assert _wait(lambda: loop.episode is None, timeout=5)
+        stopped_at = robot.q.copy()
+        ends = [e for e in host.drain() if e.kind == EPISODE_END]
+        robot.hand_dq = np.zeros(7) if case != "time" else None
+    finally:
+        driver.stop()
+    want = {"speed": "joint 3 at 1.30 rad/s", "limit": "joint 4 at", "time": "guided for"}[case]
+    assert ends and ends[-1].text.startswith("aborted: hand-guiding stopped: ") and want in ends[-1].text
+    assert driver.guide_stops == 1 and want in driver.last_guide_stop
+    if case == "limit":  # stopped on the first state inside the margin (0.5 mrad per state at 0.5 rad/s)
+        room = float(re.search(r"([\d.]+) rad from its limit", driver.last_guide_stop).group(1))
+        assert DriverConfig.guide_limit_margin - 0.001 <= room <= DriverConfig.guide_limit_margin  # 3 decimals
+        assert FR3.q_max[3] - stopped_at[3] > 0.0, "the hand moved it on, but not past the limit"
+    cmds = np.array(robot.commands[:-1])  # the last: the stop's motion-finished zero
+    assert np.abs(np.diff(cmds, axis=0)).max() <= 1.0 + 1e-9
+
+
+def test_reset_via_points_are_checked():
+    with pytest.raises(ValueError, match="reset_via must be"):
+        DriverConfig(reset_via=np.zeros((2, 2))).check()
+    with pytest.raises(ValueError, match="reset_via must be"):
+        DriverConfig(reset_via=np.array([[0.5, 0.0, np.nan]])).check()
+    from franka_driver.node import via_points
+
+    assert via_points([0.0]) is None and via_points([]) is None
+    np.testing.assert_allclose(via_points([0.5, 0, 0.35, 0.7, 0, 0.35]), [[0.5, 0, 0.35], [0.7, 0, 0.35]])
+    with pytest.raises(ValueError, match="multiple of 3"):
+        via_points([0.5, 0.0, 0.35, 0.7])
+
+
+class WatchingRobot(FakeRobot):
+    """A FakeRobot that notes, at every command, the force bound of the evaluator the controller ran."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.controller = None
+        self.bounds: list[float] = []
+
+    def writeOnce(self, torques: _Torques) -> None:
+        if self.controller is not None:
+            self.bounds.append(self.controller.evaluator.force_bound)
+        super().writeOnce(torques)
+
+
+def test_the_reset_pulls_at_most_its_own_bound_whatever_the_policys_law():
+    """A policy without a force bound (its law's 0) must not make the reset motion pull with its full spring."""
+    robot = WatchingRobot()
+    driver, loop, _host = _rig(robot, reset_force_bound=25.0)
+    assert loop.controller.law.potential_force_bound == 0.0
+    robot.controller = loop.controller
+    driver.start(logging.getLogger("franka-loop"))
+    try:
+        driver.begin_episode(0, _episode(loop.policy.x_ref, seconds=0.05)).result(timeout=20)
+        assert _wait(lambda: loop.episode is None)
+    finally:
+        driver.stop()
+    bounds = np.array(robot.bounds)
+    assert (bounds == 25.0).sum() >= 5, "the reset (5 settling ticks in the rig) ran with its own bound"
+    assert bounds[-1] == 0.0, "the episode's policy runs with its law's bound"

@@ -16,18 +16,30 @@ Episodes (``begin_episode``) start with a reset *motion*: the stable controller 
 flow, ``reset_stiffness``/``reset_damping``) drives the TCP to ``start_position``; when it is there
 and still (``reset_tolerance``, ``reset_speed``, ``reset_settle`` ticks; the posture below within
 ``reset_posture_tolerance``) the episode starts from
-the next state, with the torque rate limit in force. A reset that does not converge within
+the next state, with the torque rate limit in force. The reset's pull is bounded to
+``reset_force_bound`` whatever the episode policy's law says. A reset that does not converge within
 ``reset_timeout`` (robot time) fails the episode and the arm is held. The task-space law leaves the
 arm's self-motion to joint damping, so episodes can turn the posture while the TCP stays put; the
 reset motion therefore also pulls the joints to a posture (``reset_posture``, by default where the
 first reset reached the start) with a joint spring, so that every episode starts from the same
 posture and the drift cannot build up over a long run.
+Where a straight pull would run into the cell (a clamp between the fixture and the start), the reset
+motion passes through ``reset_via`` first, one spring at a time: each point counts as passed within
+``reset_via_tolerance``; the joint spring acts on the last leg only.
 
 libfranka's exceptions (reflexes, network) end torque control: the running episode is aborted,
 the error is kept for /diagnostics, and the loop waits. Without ``automatic_error_recovery`` the
 controller's safe hold is latched too and only a person restarts (``request_recovery()``, then the
 controller's clear_fault). With it, the loop recovers after ``recovery_wait`` and goes on; an
 episode asked for meanwhile starts its reset motion once torque control is back.
+
+Hand-guiding (``guide``): every episode, after its reset motion, commands zero torque, so the robot's
+own gravity compensation is all the arm gets and a person moves it (teaching by demonstration; the
+episode's states are recorded as any other's). The command ramps from the reset's to zero at the
+torque rate limit. The guide stops the episode (aborted, with the reason) and hands the arm to the
+safe hold when a joint moves faster than ``guide_joint_speed``, comes within ``guide_limit_margin`` of
+a limit, or the episode runs longer than ``guide_timeout``. However the guide ends, the hold anchors
+where the arm is and its command starts from zero.
 """
 
 from __future__ import annotations
@@ -65,12 +77,17 @@ class DriverConfig:
     reset_settle: int = 200  # ticks in a row within tolerance and still
     reset_stiffness: float = 1500.0  # N/m of the reset motion's spring (stiff: joint friction stops a soft
     reset_damping: float = 100.0  # N s/m   spring short by friction / stiffness)
+    # N: the reset motion's pull is bounded to this (0: no bound), whatever the episode policy's law says:
+    # a long way at reset_stiffness would otherwise pull with hundreds of N, up to the torque limits
+    reset_force_bound: float = 60.0
     # The reset motion's joint spring (Nm/rad) and damping (Nm s/rad) to reset_posture (rad; None: the
     # joints where the first reset reached the start). A conservative potential: the reset stays stable.
     reset_posture_stiffness: float = 20.0
     reset_posture_damping: float = 10.0
     reset_posture: np.ndarray | None = None
     reset_posture_tolerance: float = 0.1  # rad, largest joint's distance to it that counts as arrived
+    reset_via: np.ndarray | None = None  # (k, 3) m: TCP points a reset passes through before start_position
+    reset_via_tolerance: float = 0.02  # m from a via point that counts as passed
     fixture_position: np.ndarray = field(default_factory=lambda: np.array([0.5, 0.0, 0.07]))  # mouth, base frame
     fixture_radius: float = 0.005  # m: laterally within this of the fixture axis counts as "inside"
     success_depth: float = 0.016  # m below the mouth
@@ -80,6 +97,10 @@ class DriverConfig:
     goal_tolerance: float = 0.001  # m
     gravity_headroom: bool = True  # clamp each command to limit - |g(q)| (the robot adds g on top)
     keep_timing: bool = False  # keep every latency and period (benchmark)
+    guide: bool = False  # hand-guiding: episodes command zero torque (module docstring)
+    guide_joint_speed: float = 1.0  # rad/s: a joint faster than this stops the guide into the hold
+    guide_limit_margin: float = 0.05  # rad: a joint this close to a limit stops the guide into the hold
+    guide_timeout: float = 60.0  # s of robot time a guided episode may last
 
     @property
     def posture_spring(self) -> bool:
@@ -94,11 +115,12 @@ class DriverConfig:
                 raise ValueError(f"{name} must be 3 finite values (m), got {getattr(self, name)}")
             setattr(self, name, v)
         for name in ("reset_timeout", "reset_tolerance", "reset_speed", "reset_stiffness", "reset_damping",
-                     "reset_posture_tolerance", "fixture_radius", "success_depth", "recovery_wait"):
+                     "reset_posture_tolerance", "fixture_radius", "success_depth", "recovery_wait",
+                     "guide_joint_speed", "guide_limit_margin", "guide_timeout", "reset_via_tolerance"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"{name} must be > 0, got {value}")
-        for name in ("reset_posture_stiffness", "reset_posture_damping"):
+        for name in ("reset_posture_stiffness", "reset_posture_damping", "reset_force_bound"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name} must be >= 0, got {value}")
@@ -107,6 +129,11 @@ class DriverConfig:
             if posture.ndim != 1 or not np.all(np.isfinite(posture)):
                 raise ValueError(f"reset_posture must be finite joint positions (rad), got {self.reset_posture}")
             self.reset_posture = posture
+        if self.reset_via is not None:
+            via = np.asarray(self.reset_via, dtype=float)
+            if via.ndim != 2 or via.shape[1] != 3 or not len(via) or not np.all(np.isfinite(via)):
+                raise ValueError(f"reset_via must be finite TCP points (m), 3 values each, got {self.reset_via}")
+            self.reset_via = via
         if self.goal is not None:
             goal = np.asarray(self.goal, dtype=float)
             if goal.shape != (3,) or not np.all(np.isfinite(goal)):
@@ -127,11 +154,14 @@ def reset_policy(start: np.ndarray, stiffness: float, damping: float) -> PolicyP
 class _Reset:
     """A reset motion in progress (driver thread only)."""
 
-    def __init__(self, run: EpisodeRun, future: Future, deadline_ns: int, evaluator: FlowEvaluator) -> None:
+    def __init__(self, run: EpisodeRun, future: Future, deadline_ns: int, evaluator: FlowEvaluator,
+                 via: list[tuple[np.ndarray, FlowEvaluator]] | None = None) -> None:
         self.run = run
         self.future = future
         self.deadline_ns = deadline_ns  # robot time
-        self.evaluator = evaluator
+        self.via = list(via or [])  # (point, its spring's evaluator) still to pass, in order
+        self.final = evaluator  # the spring to the start
+        self.evaluator = self.via[0][1] if self.via else evaluator  # the spring pulling now
         self.saved_evaluator: Any = None
         self.saved_idle = ""
         self.settled = 0
@@ -195,14 +225,26 @@ class FrankaDriverLoop(DriverLoop):
         self._q = self._dq = np.zeros(host.loop.n)
         self._stamp_ns = 0
         self._arm = host.loop.controller.arm
+        # hand-guiding (driver thread): whether this tick guides, the first stamp of the guide, the last command
+        self._guiding = False
+        self._guide_since_ns = 0
+        self._zero = np.zeros(host.loop.n)
+        self._sent = np.zeros(host.loop.n)  # Nm, the last command written (without the robot's gravity)
+        self._guide_step = self.law.torque_rate_limit * self.law.dt  # Nm per tick towards zero
+        self.guides = 0  # guided episodes begun
+        self.guide_stops = 0  # guides stopped by a limit
+        self.last_guide_stop = ""
 
     # ------------------------------------------------------------------ episodes (DriverLoop.begin_episode)
     def reset(self, seed: int, run: EpisodeRun, done: Future) -> Callable[[], None]:
         """Move to ``start_position`` with the stable controller, then start ``run`` (``seed`` is
         unused: a robot starts where the reset motion brings it); ``done`` is completed when the
         episode runs, or holds why the reset failed."""
-        params = reset_policy(self.config.start_position, self.config.reset_stiffness, self.config.reset_damping)
-        evaluator = self.host.loop.prepare_policy(params)  # the slow part, on the caller's thread
+        c = self.config
+        # the slow part, on the caller's thread
+        evaluator = self.host.loop.prepare_policy(reset_policy(c.start_position, c.reset_stiffness, c.reset_damping))
+        via = [(p, self.host.loop.prepare_policy(reset_policy(p, c.reset_stiffness, c.reset_damping)))
+               for p in (c.reset_via if c.reset_via is not None else [])]
 
         def start_reset() -> None:
             loop = self.host.loop
@@ -223,17 +265,23 @@ class FrankaDriverLoop(DriverLoop):
             if self._reset is not None:
                 raise RuntimeError("a reset is already running")
             deadline = self.host.last_stamp_ns + int(self.config.reset_timeout * 1e9)
-            reset = _Reset(run, done, deadline, evaluator)
+            reset = _Reset(run, done, deadline, evaluator, via)
             ctrl = loop.controller
             reset.saved_evaluator, reset.saved_idle = ctrl.evaluator, loop.config.idle_mode
-            ctrl.set_evaluator(reset.evaluator)
-            if self.posture is not None and self.config.posture_spring:  # not the first reset (no posture yet)
-                reset.posture = self.posture.copy()
-                ctrl.set_posture(reset.posture, self.config.reset_posture_stiffness, self.config.reset_posture_damping)
+            ctrl.set_evaluator(reset.evaluator, self.config.reset_force_bound)
+            if not reset.via:
+                self._posture_spring(reset)
             loop.config.idle_mode = "policy"
             self._reset = reset
 
         return start_reset
+
+    def _posture_spring(self, reset: _Reset) -> None:
+        """The reset's joint spring to the posture (not on the first reset: no posture yet)."""
+        if self.posture is not None and self.config.posture_spring:
+            reset.posture = self.posture.copy()
+            self.host.loop.controller.set_posture(reset.posture, self.config.reset_posture_stiffness,
+                                                  self.config.reset_posture_damping)
 
     def _end_reset(self, problem: str) -> None:
         """Driver thread: restore the controller's policy; start the episode or fail the future."""
@@ -272,13 +320,22 @@ class FrankaDriverLoop(DriverLoop):
         ctrl = loop.controller
         if ctrl.evaluator is not reset.evaluator:  # a policy arrived and was installed meanwhile
             reset.saved_evaluator = ctrl.evaluator
-            ctrl.set_evaluator(reset.evaluator)
+            ctrl.set_evaluator(reset.evaluator, self.config.reset_force_bound)
+        elif reset.evaluator.force_bound != self.config.reset_force_bound:  # a new law set its bound
+            reset.evaluator.set_force_bound(self.config.reset_force_bound)
         if loop.fault:
             self._end_reset(f"safe hold: {loop.fault}")
             return
         if reset.future.cancelled():
             self._end_reset("canceled")
             return
+        if reset.via:  # a via point: on to the next spring once it is passed
+            if np.linalg.norm(x - reset.via[0][0]) < self.config.reset_via_tolerance:
+                reset.via.pop(0)
+                reset.evaluator = reset.via[0][1] if reset.via else reset.final
+                ctrl.set_evaluator(reset.evaluator, self.config.reset_force_bound)
+                if not reset.via:
+                    self._posture_spring(reset)
         reset.error = float(np.linalg.norm(x - self.config.start_position))
         speed = float(np.linalg.norm(ctrl.xdot))
         posture = reset.posture is None or np.abs(self._q - reset.posture).max() < self.config.reset_posture_tolerance
@@ -346,6 +403,8 @@ class FrankaDriverLoop(DriverLoop):
         self.in_error = False
         self.timing.restart()
         ctrl.reset_rate_limit(np.zeros(loop.n))  # the robot gets no torque from us before the first write
+        self._sent[:] = 0.0
+        self._guiding = False
         ctrl.release_hold_anchor()  # the arm may have moved since the last session (a reflex, a person)
         self._rebase = True  # first state of this session: keep the stamps increasing across reconnects
         deferred, self._deferred = self._deferred, None
@@ -375,8 +434,49 @@ class FrankaDriverLoop(DriverLoop):
         return stamp_ns, q, dq, read
 
     def write(self, tau: np.ndarray) -> None:
-        """The command; the robot adds its own gravity torque."""
+        """The command; the robot adds its own gravity torque. While hand-guiding, zero torque instead."""
+        if self.config.guide and (self._guiding or (self._reset is None and self.host.loop.episode is not None)):
+            tau = self._guide_command()
+        self._sent[:] = tau
         self._control.writeOnce(self.torques(tau.tolist()))
+
+    def guide_problem(self, q: np.ndarray, dq: np.ndarray, elapsed_s: float) -> str:
+        """Why a guide must stop at joints ``q`` (rad), ``dq`` (rad/s) after ``elapsed_s`` s ("" while it may go on)."""
+        c = self.config
+        law = self.host.loop.controller.law  # the arm's joint limits
+        fast = np.abs(dq)
+        j = int(np.argmax(fast))
+        if not fast[j] <= c.guide_joint_speed:  # NaN stops it too
+            return f"joint {j + 1} at {fast[j]:.2f} rad/s (guide_joint_speed {c.guide_joint_speed:g})"
+        room = np.minimum(q - law.q_min, law.q_max - q)
+        j = int(np.argmin(room))
+        if not room[j] >= c.guide_limit_margin:
+            return (f"joint {j + 1} at {q[j]:.3f} rad, {max(room[j], 0.0):.3f} rad from its limit "
+                    f"(guide_limit_margin {c.guide_limit_margin:g})")
+        if elapsed_s > c.guide_timeout:
+            return f"guided for {elapsed_s:.1f} s (guide_timeout {c.guide_timeout:g})"
+        return ""
+
+    def _guide_command(self) -> np.ndarray:
+        """Driver thread, hand-guiding: the command ramped towards zero while the episode runs and no limit is
+        reached; on leaving (the episode ended, or a limit stopped it), the hold anchors here from zero."""
+        loop = self.host.loop
+        if loop.episode is not None and self._reset is None:
+            if not self._guiding:
+                self._guiding = True
+                self._guide_since_ns = self._stamp_ns
+                self.guides += 1
+            problem = self.guide_problem(self._q, self._dq, (self._stamp_ns - self._guide_since_ns) * 1e-9)
+            if not problem:
+                return self._sent - np.clip(self._sent, -self._guide_step, self._guide_step)
+            self.guide_stops += 1
+            self.last_guide_stop = problem
+            self.host.end_episode(f"aborted: hand-guiding stopped: {problem}")
+        self._guiding = False
+        ctrl = loop.controller
+        ctrl.reset_rate_limit(self._sent)  # the hold's first command ramps from what the arm gets now
+        ctrl.release_hold_anchor()  # and holds where the person left the arm
+        return self._sent
 
     def update(self) -> None:
         """After the write (the next state is ~1 ms away): missed cycles, the gravity headroom of the

@@ -65,16 +65,26 @@ PARAMETERS = {
     "reset_settle": (_D.reset_settle, "ticks in a row arrived and still before the episode starts"),
     "reset_stiffness": (_D.reset_stiffness, "N/m, the reset motion's spring (identity flow)"),
     "reset_damping": (_D.reset_damping, "N s/m, the reset motion's damping"),
+    "reset_force_bound": (_D.reset_force_bound, "N, bound on the reset motion's pull, whatever the policy's law "
+                                                "(0: none)"),
     "reset_posture_stiffness": (_D.reset_posture_stiffness,
                                 "Nm/rad, the reset motion's joint spring to reset_posture (0: none)"),
     "reset_posture_damping": (_D.reset_posture_damping, "Nm s/rad, the reset motion's joint damping with it"),
     "reset_posture": ([0.0], "rad, the joints the reset motion returns to ([0.0] or empty: where the first "
                              "reset reached start_position)"),
+    "reset_via": ([0.0], "m, TCP points (x y z, ...) a reset motion passes through before start_position, e.g. "
+                         "over a clamp ([0.0] or empty: straight to the start)"),
+    "reset_via_tolerance": (_D.reset_via_tolerance, "m from a reset_via point that counts as passed"),
     "automatic_error_recovery": (False, "after a libfranka error: recover and go on without a person"),
     "recovery_wait": (_D.recovery_wait, "s before an automatic recovery"),
     "gravity_headroom": (True, "clamp each command to limit - |g(q)| (the robot adds g(q) on top)"),
     "joint_state_rate": (100.0, "joint_states messages per s (from a timer, not the tick)"),
     "diagnostics_period": (1.0, "s between /diagnostics messages"),
+    "guide": (False, "hand-guiding: every episode, after its reset motion, commands zero torque (the robot's "
+                     "gravity compensation only) so a person moves the arm; docs/hardware.md"),
+    "guide_joint_speed": (_D.guide_joint_speed, "rad/s: a joint faster than this stops hand-guiding into the hold"),
+    "guide_limit_margin": (_D.guide_limit_margin, "rad: a joint this close to a limit stops hand-guiding"),
+    "guide_timeout": (_D.guide_timeout, "s of robot time a guided episode may last"),
     "timing_log": ("", "file (.npy) for every read->write latency, periods and a .json summary at shutdown"),
 }
 
@@ -90,6 +100,15 @@ def _check(p: dict) -> None:
             raise ValueError(f"{name} must be > 0, got {p[name]}")
 
 
+def via_points(values: list[float]) -> np.ndarray | None:
+    """``reset_via``'s flat list as (k, 3) points (None for [0.0] or empty); ValueError for another length."""
+    if len(values) <= 1:
+        return None
+    if len(values) % 3:
+        raise ValueError(f"reset_via must be x y z per point (a multiple of 3 values), got {len(values)}: {values}")
+    return np.asarray(values, float).reshape(-1, 3)
+
+
 def driver_config(p: dict, keep_timing: bool = False) -> DriverConfig:
     """The loop's settings from the node's parameters (checked)."""
     config = DriverConfig(
@@ -98,10 +117,14 @@ def driver_config(p: dict, keep_timing: bool = False) -> DriverConfig:
         fixture_radius=p["fixture_radius"], success_depth=p["success_depth"], reset_timeout=p["reset_timeout"],
         reset_tolerance=p["reset_tolerance"], reset_speed=p["reset_speed"], reset_settle=p["reset_settle"],
         reset_stiffness=p["reset_stiffness"], reset_damping=p["reset_damping"],
+        reset_force_bound=p["reset_force_bound"],
         reset_posture_stiffness=p["reset_posture_stiffness"], reset_posture_damping=p["reset_posture_damping"],
         reset_posture=np.asarray(p["reset_posture"], float) if len(p["reset_posture"]) > 1 else None,
+        reset_via=via_points(p["reset_via"]), reset_via_tolerance=p["reset_via_tolerance"],
         automatic_error_recovery=p["automatic_error_recovery"], recovery_wait=p["recovery_wait"],
-        gravity_headroom=p["gravity_headroom"], keep_timing=keep_timing,
+        gravity_headroom=p["gravity_headroom"], keep_timing=keep_timing, guide=p["guide"],
+        guide_joint_speed=p["guide_joint_speed"], guide_limit_margin=p["guide_limit_margin"],
+        guide_timeout=p["guide_timeout"],
         goal=np.asarray(p["goal"], float) if len(p["goal"]) == 3 else None, goal_tolerance=p["goal_tolerance"])
     config.check()
     return config
@@ -199,12 +222,17 @@ class FrankaDriverNode(Node):
             f"deadline {loop.config.deadline * 1e3:g} ms x "
             f"{loop.config.max_consecutive_misses}, joint ranges {np.round(loop.q_min, 3).tolist()} .. "
             f"{np.round(loop.q_max, 3).tolist()} rad, reset {self.config.reset_stiffness:g} N/m / "
-            f"{self.config.reset_damping:g} N s/m to {self.config.start_position.tolist()}, posture spring "
+            f"{self.config.reset_damping:g} N s/m (pull at most {self.config.reset_force_bound:g} N) to "
+            f"{self.config.start_position.tolist()}"
+            f"{'' if self.config.reset_via is None else ' via ' + str(self.config.reset_via.tolist())}, posture spring "
             f"{self.config.reset_posture_stiffness:g} Nm/rad / {self.config.reset_posture_damping:g} Nm s/rad to "
             f"{'the first reset' if self.config.reset_posture is None else self.config.reset_posture.tolist()}, within "
             f"{self.config.reset_timeout:g} s, fixture {self.config.fixture_position.tolist()}, goal "
             f"{'any' if self.config.goal is None else self.config.goal.tolist()}, "
-            f"automatic_error_recovery {self.config.automatic_error_recovery}")
+            f"automatic_error_recovery {self.config.automatic_error_recovery}"
+            + (f"; HAND-GUIDING: episodes command zero torque, stopped into the hold above "
+               f"{self.config.guide_joint_speed:g} rad/s, within {self.config.guide_limit_margin:g} rad of a limit "
+               f"or after {self.config.guide_timeout:g} s" if self.config.guide else ""))
         return self.driver
 
     def start_driver(self) -> None:
@@ -242,7 +270,8 @@ class FrankaDriverNode(Node):
         if d.in_error:
             status.level, status.message = DiagnosticStatus.ERROR, f"libfranka error: {d.last_error}"
         elif d.sessions:
-            status.level, status.message = DiagnosticStatus.OK, "torque control"
+            status.level, status.message = DiagnosticStatus.OK, "torque control" + (", hand-guiding" if d.config.guide
+                                                                                      else "")
         else:
             status.level, status.message = DiagnosticStatus.OK, "starting"
         if d.last_error and d.last_error != self._logged_error:
@@ -254,6 +283,7 @@ class FrankaDriverNode(Node):
                   "loop_scheduling": d.scheduling,
                   **{f"latency_{k}": f"{v:.1f}" for k, v in lat.items()}, **d.timing.counters(),
                   "resets_done": d.resets_done, "resets_failed": d.resets_failed, "last_reset": d.last_reset,
+                  "guides": d.guides, "guide_stops": d.guide_stops, "last_guide_stop": d.last_guide_stop,
                   "tcp": np.round(d.x, 4).tolist(), "insertion_depth": f"{d.depth:.4f}", "success": d.success}
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])

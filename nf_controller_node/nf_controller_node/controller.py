@@ -203,13 +203,14 @@ class FlowController:
         self.set_evaluator(evaluator)
 
     # -- configuration --------------------------------------------------------------------
-    def set_evaluator(self, evaluator: FlowEvaluator) -> None:
-        """Swap the flow (new policy parameters); call only between episodes."""
+    def set_evaluator(self, evaluator: FlowEvaluator, force_bound: float | None = None) -> None:
+        """Swap the flow (new policy parameters); call only between episodes. Its pull is bounded by the
+        law's ``potential_force_bound``, or by ``force_bound`` N when given (a driver's reset motion)."""
         self.evaluator = evaluator
         self._anchor = None  # teleoperation: the new policy's anchor starts where the TCP is
         self._kernel_args = evaluator.kernel_args() if isinstance(evaluator, FlowEvaluator) else None
         if self._kernel_args is not None:
-            evaluator.set_force_bound(self.law.potential_force_bound)
+            evaluator.set_force_bound(self.law.potential_force_bound if force_bound is None else force_bound)
 
     def set_law(self, law: TorqueLawConfig) -> None:
         """Set gains and limits of the torque law; call only between episodes."""
