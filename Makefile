@@ -35,7 +35,7 @@ run: setup  ## the whole stack learning the gear from a failing prior in simulat
 run-franka: setup  ## learning on the robot path: franky-sim's FR3 with the gear cell behind libfranka (15 iterations, ~28 min); ARGS="--robot <FCI address> --goal X Y Z" for a real arm
 	@$(ENV) && python -m nf_bringup.robot_run $(ARGS)
 
-teach: setup  ## record demonstrations as a bag by teleoperation through the stable law (gear_clamp, a scripted operator, ~2 min); ARGS="--operator keyboard" for you
+teach: setup  ## record demonstrations as a bag by teleoperation through the stable law (gear_clamp, a scripted operator, ~2 min); ARGS="--operator keyboard" for you, "--robot franky" to hand-guide franky-sim's FR3
 	@$(ENV) && python -m nf_bringup.teach $(ARGS)
 
 clean:  ## remove build products (keeps .venv)

@@ -11,6 +11,7 @@ pin and seats on the shoulder, 20 mm off the axis it stops on the pin's top face
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -160,3 +161,60 @@ def test_the_gear_weight_sags_the_arm_unless_configured_as_the_robots_load(tmp_p
           f"{time.monotonic() - t0:.1f} s in all")
     assert sag[False] - sag[True] == pytest.approx(weight, rel=0.2)
     assert abs(sag[True]) < 0.0002  # what is left: franky-sim's own 0.29 N (tests/test_franka_model_error.py)
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+@pytest.mark.timeout(420)
+def test_hand_guiding_on_franky_records_zero_torque_demonstrations_that_fit_a_flow_over_the_clamp(tmp_path):
+    """``teach --robot franky``: the Franka stack with the driver's ``guide`` on, franky-sim's scripted hand
+    (SIGUSR2) pushes the FR3 over the clamp and onto the shaft. The bag's episodes carry zero commanded torque,
+    the resets go over the clamp (``reset_via``), and a flow fitted to the two demonstrations carries the gear
+    over the jaw in our simulation from the arm's start, where the identity flow stops behind it."""
+    from nf_bags.fit_demos import demo_paths, episode_windows
+    from nf_bags.fit_demos import main as fit_main
+    from nf_bags.reader import joint_trajectory
+
+    from learner_node.config import TrainConfig
+    from learner_node.trainer import Trainer, make_evaluator
+
+    from ros_testing import RosProcess, allocate_domain_id
+
+    clamp = load_task("gear_clamp")
+    domain = allocate_domain_id()
+    out = tmp_path / "teach"
+    run = RosProcess(["-m", "nf_bringup.teach", "--robot", "franky", "--demos", "2", "--out", str(out),
+                      "--domain-id", str(domain)], domain, tmp_path / "teach.log")
+    try:
+        assert run.proc.wait(360) == 0, run.log()
+    finally:
+        run.stop()
+    demos = json.loads((out / "demos.json").read_text())
+    assert demos["robot"] == "franky" and [d["success"] for d in demos["demos"]] == [True, True], demos
+    sim_log = (out / "logs" / "franky-sim.log").read_text()
+    assert sim_log.count("hand on the arm (SIGUSR2)") == 2 and sim_log.count("hand off the arm") == 2, sim_log
+
+    windows = episode_windows(out / "bag")
+    traj = joint_trajectory(out / "bag")
+    assert len(windows) == 2
+    for a, b in windows:  # zero torque once the ramp from the reset's command is over (<= 1 Nm per ms)
+        rows = np.flatnonzero((traj.stamp_ns >= a + 100_000_000) & (traj.stamp_ns <= b - 50_000_000))
+        assert len(rows) > 300 and np.abs(traj.effort[rows]).max() == 0.0, np.abs(traj.effort[rows]).max()
+    paths = demo_paths(out / "bag", clamp)
+    for p in paths:  # from the arm's start up over the jaw, onto the shaft
+        assert p[0, 0] > clamp.clamp.center_x + 0.05 and p[:, 2].max() > clamp.clamp.top + 0.05
+        assert np.linalg.norm(p[-1] - clamp.goal_position) < 0.005, p[-1]
+
+    config = Path(__file__).resolve().parents[1] / "config" / "gear_clamp.yaml"
+    assert fit_main([str(out / "bag"), "--config", str(config), "--out", str(tmp_path / "fit"), "--episodes", "0",
+                     "--explore-std", "0"]) == 0
+    trainer = Trainer(TrainConfig.from_sources(config, {"init_checkpoint": str(tmp_path / "fit" / "checkpoint.pt"),
+                                                        "start": "fixed"}))
+    trainer.resume_or_init()
+    shown = trainer.runner.run_episode(make_evaluator(trainer.policy), None, 0, None)
+    far_side = clamp.clamp.center_x - clamp.clamp.half_thickness - clamp.part.outer_radius
+    crossed = np.flatnonzero(shown.x[:, 0] < far_side)
+    assert len(crossed) and shown.x[: crossed[0], 2].max() > clamp.clamp.top, (shown.x[::50], shown.faults)
+    identity = Trainer(TrainConfig.from_sources(config, {"stiffness": 400.0, "start": "fixed"}))
+    stopped = identity.runner.run_episode(make_evaluator(identity.policy), None, 0, None)
+    assert stopped.x[-1, 0] > clamp.clamp.center_x and not stopped.final_success, stopped.x[-1]

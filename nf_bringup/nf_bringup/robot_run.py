@@ -34,6 +34,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from nf_core.friction import OFF, FrictionRanges
@@ -128,7 +129,8 @@ def task_argument(task: str) -> str:
 
 def cell_parameters(task: str) -> list[str]:
     """The Franka stack's cell from a gear task file: the part in the hand, the fixture's mouth, the start
-    of the reset motion, what counts as inside the fixture and as success (overriding the hardware file)."""
+    of the reset motion (over the clamp and pulling up to ``CLAMP_RESET_FORCE``, if the task has one), what
+    counts as inside the fixture and as success (overriding the hardware file)."""
     from nf_core.task_spec import load_task
 
     spec = load_task(task)
@@ -140,7 +142,23 @@ def cell_parameters(task: str) -> list[str]:
             "-p", f"franka_driver:fixture_position:={floats(spec.top)}",
             "-p", f"franka_driver:start_position:={floats(spec.start_tcp)}",
             "-p", f"franka_driver:fixture_radius:={spec.lateral_tolerance!r}",
-            "-p", f"franka_driver:success_depth:={spec.success_depth!r}"]
+            "-p", f"franka_driver:success_depth:={spec.success_depth!r}",
+            *(["-p", f"franka_driver:reset_via:={floats(reset_via(spec).ravel())}",
+               "-p", f"franka_driver:reset_force_bound:={CLAMP_RESET_FORCE!r}"] if spec.clamp else [])]
+
+
+CLAMP_CLEARANCE = 0.15  # m: the TCP's height above a clamp's top while a reset motion passes over it
+# N: a reset's pull in a clamp's cell. Lifting gear_clamp's seated gear, the orientation spring presses its
+# bore against the pin: on franky-sim 40 N and 60 N stalled in some resets, 100 N in none (docs/hardware.md)
+CLAMP_RESET_FORCE = 100.0
+
+
+def reset_via(spec) -> np.ndarray:
+    """A reset motion's way over ``spec``'s clamp (m, base frame): up above the fixture, across above the
+    start, at ``CLAMP_CLEARANCE`` over the clamp's top (a straight pull from the fixture would drag the part
+    through the jaw)."""
+    z = spec.clamp.top + CLAMP_CLEARANCE
+    return np.array([[spec.top[0], spec.top[1], z], [spec.start_tcp[0], spec.start_tcp[1], z]])
 
 
 def arm_settings_apply(args: argparse.Namespace) -> bool:

@@ -13,6 +13,16 @@ status with the anchor, targets, task status); ``fit_demos`` reads it back.
 
     teach --task gear_clamp --demos 8                       # a scripted operator (stands in for a person)
     teach --task gear_clamp --demos 3 --operator keyboard   # you, in real time: keys below
+    teach --robot franky --task gear_clamp --demos 8        # hand-guiding franky-sim's FR3 (below)
+    teach --robot 172.16.0.2 --task my_cell.yaml --demos 5   # you guide a real FR3 / Panda by hand
+
+Hand-guiding (``--robot franky``): the Franka stack (``nf_franka_stack``) with the driver's ``guide`` on,
+so each episode, after the reset motion to the task's start, commands zero torque and the arm is moved
+by hand, its gravity compensated by the robot; the driver stops a guide into the safe hold on a joint
+speed, a joint limit or a time limit (docs/hardware.md). On franky-sim a scripted hand
+(``nf_bringup.testing.franky``, SIGUSR2) pushes the TCP over the task's path as a person would. On a real
+arm (``--robot <FCI address>``) you do, within ``--seconds`` of each episode's start; the robot PC needs
+the realtime kernel, and a reflex waits for you (``/franka_driver/recover``, then ``clear_fault``).
 
 Keys (``--operator keyboard``, real-time simulation): w/s +x/-x, a/d +y/-y, r/f up/down, by ``--step``
 (default 1 cm) from where the anchor is; the episode ends after ``--seconds``.
@@ -125,6 +135,40 @@ class KeyboardOperator:
             termios.tcsetattr(fd, termios.TCSADRAIN, saved)
 
 
+class PersonOperator:
+    """A person guiding a real arm by hand: told when each demonstration begins; nothing to publish."""
+
+    def __init__(self, seconds: float, log: Callable[[str], None] = print) -> None:
+        self.seconds = seconds
+        self.log = log
+
+    def begin(self, tcp: np.ndarray) -> None:
+        """A new demonstration: say so."""
+        self.log(f"[teach] zero torque now: guide the arm onto the fixture within {self.seconds:g} s "
+                 f"(from TCP {np.round(tcp, 3).tolist()} m)")
+
+    def target(self, anchor: np.ndarray) -> np.ndarray | None:
+        """Nothing: the person moves the arm."""
+        return None
+
+
+class HandOperator:
+    """franky-sim's scripted hand (``FrankySim.push_hand``), put on the arm as each demonstration begins; it
+    pushes by itself, so there is no target to publish."""
+
+    def __init__(self, sim: object, log: Callable[[str], None] = print) -> None:
+        self.sim = sim
+        self.log = log
+
+    def begin(self, tcp: np.ndarray) -> None:
+        """A new demonstration: the hand takes the arm."""
+        self.log(f"[teach] {self.sim.push_hand()}")
+
+    def target(self, anchor: np.ndarray) -> np.ndarray | None:
+        """Nothing: the hand moves the arm itself."""
+        return None
+
+
 def teaching_policy(task: TaskSpec, n_flow: int, n_hidden: int, activation: str, force_bound: float,
                     version: int = 1) -> object:
     """PolicyParameters of the teaching spring: the identity flow (all weights 0), S = 300 I, D = 40 I,
@@ -140,7 +184,10 @@ def teaching_policy(task: TaskSpec, n_flow: int, n_hidden: int, activation: str,
                                                            held_part=task.part.text()))
 
 
-def run_demonstrations(task: TaskSpec, operator: ScriptedOperator | KeyboardOperator, n: int, seconds: float,
+Operator = ScriptedOperator | KeyboardOperator | HandOperator | PersonOperator
+
+
+def run_demonstrations(task: TaskSpec, operator: Operator, n: int, seconds: float,
                        first_seed: int, force_bound: float, log: Callable[[str], None] = print) -> list[dict]:
     """Publish the teaching policy, then run ``n`` episodes of ``seconds`` s while ``operator`` pulls the
     anchor; returns each one's result. Needs rclpy initialised and the arm stack running."""
@@ -226,8 +273,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--config", type=Path, default=Path("config/gear_clamp.yaml"),
                     help="the stack's parameters file (config/sim.yaml beside it comes first)")
     ap.add_argument("--demos", type=int, default=8, help="demonstrations to record (default 8)")
-    ap.add_argument("--operator", choices=("scripted", "keyboard"), default="scripted")
-    ap.add_argument("--seconds", type=float, default=7.0, help="s per demonstration (default 7)")
+    ap.add_argument("--operator", choices=("scripted", "keyboard"), default="scripted",
+                    help="simulation: who pulls the anchor (--robot franky: franky-sim's scripted hand)")
+    ap.add_argument("--robot", default="sim",
+                    help="sim: teleoperation on the simulated arm; franky: hand-guiding franky-sim's FR3 (zero "
+                         "torque, a scripted hand); an FCI address: you guide that arm by hand")
+    ap.add_argument("--hardware-config", type=Path, default=Path("config/franka.yaml"),
+                    help="a Franka (--robot franky or an address): the Franka stack's file")
+    ap.add_argument("--seconds", type=float, default=None,
+                    help="s per demonstration (default 7; 10 on a Franka)")
     ap.add_argument("--speed", type=float, default=0.15, help="m/s the anchor moves at most (default 0.15)")
     ap.add_argument("--step", type=float, default=0.01, help="m per key (keyboard; default 0.01)")
     ap.add_argument("--force-bound", type=float, default=40.0,
@@ -236,12 +290,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="folder (default runs/teach-<date-time>)")
     ap.add_argument("--domain-id", type=int, default=None)
     args = ap.parse_args(argv)
+    franka = args.robot != "sim"  # hand-guiding a Franka: franky-sim's or a real one
+    franky = args.robot == "franky"
+    if args.seconds is None:
+        args.seconds = 10.0 if franka else 7.0
+    if franka and args.operator != "scripted":
+        ap.error("a Franka is guided by hand (franky-sim's scripted one); --operator is for the simulated arm")
     if args.demos < 1 or args.seconds <= 0.0 or args.speed <= 0.0 or args.force_bound <= 0.0:
         ap.error("--demos, --seconds, --speed and --force-bound must be > 0")
     try:
         task = load_task(args.task)
     except ValueError as exc:
         ap.error(str(exc))
+    if franka and task.kind != "gear":
+        ap.error(f"the Franka cell holds a gear task; {args.task} is a {task.kind} task")
     keyboard = args.operator == "keyboard"
     if keyboard and not sys.stdin.isatty():
         ap.error("--operator keyboard reads keys from a terminal; stdin is not one")
@@ -251,12 +313,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     # an operator works in real time (the scripted one too: it watches the anchor at 50 Hz); a file, last,
     # since the files' /**/ settings would win over -p
     teaching = out / "teach_parameters.yaml"
-    teaching.write_text(yaml.safe_dump({
-        "/**/sim_bridge": {"ros__parameters": {"mode": "realtime"}},
-        "/**/nf_controller": {"ros__parameters": {"teleop_speed": float(args.speed), "status_rate": 50.0,
-                                                  "idle_mode": "hold", "max_consecutive_misses": 20}}}))
-    params = ["--ros-args"] + [a for f in (args.config.resolve().parent / SIM_STACK_PARAMS, args.config, overlay,
-                                           teaching) for a in ("--params-file", str(f))]
+    if franka:  # zero torque in every episode; the controller's status as often as in simulation
+        driver = {"guide": True, "robot_ip": "127.0.0.1" if franky else args.robot}
+        if franky:  # a simulator: any kernel, reflexes recovered without a person
+            driver |= {"realtime": "ignore", "automatic_error_recovery": True}
+        teaching.write_text(yaml.safe_dump({
+            "/**/franka_driver": {"ros__parameters": driver},
+            "/**/nf_controller": {"ros__parameters": {"status_rate": 50.0}}}))
+        from .robot_run import cell_parameters, task_argument
+
+        params = ["--ros-args", "--params-file", str(args.hardware_config), "--params-file", str(teaching),
+                  *cell_parameters(args.task)]
+    else:
+        teaching.write_text(yaml.safe_dump({
+            "/**/sim_bridge": {"ros__parameters": {"mode": "realtime"}},
+            "/**/nf_controller": {"ros__parameters": {"teleop_speed": float(args.speed), "status_rate": 50.0,
+                                                      "idle_mode": "hold", "max_consecutive_misses": 20}}}))
+        params = ["--ros-args"] + [a for f in (args.config.resolve().parent / SIM_STACK_PARAMS, args.config, overlay,
+                                               teaching) for a in ("--params-file", str(f))]
     domain_id = args.domain_id if args.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID")
                                                                        or allocate_domain_id())
     env = ros_env(domain_id, sources=False)
@@ -265,15 +339,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     py = sys.executable
     watch = ("recording /joint_states (", "recording /controller_status (")
     procs = {"recorder": ManagedProcess("recorder", [py, "-m", "nf_bags.record", "-o", str(out / "bag")], env,
-                                        out / "logs", watch=watch),
-             "arm": ManagedProcess("arm", [py, "-m", "nf_bringup.sim_stack", *params], env, out / "logs")}
-    operator = KeyboardOperator(args.step) if keyboard else ScriptedOperator(task)
+                                        out / "logs", watch=watch)}
+    sim = None
+    if franky:
+        from .testing.franky import FrankySim
+
+        (out / "logs").mkdir(parents=True, exist_ok=True)
+        try:
+            sim = FrankySim(out / "logs" / "franky-sim.log", gear=True, gear_load=True, task=task_argument(args.task))
+        except RuntimeError as exc:
+            procs["recorder"].stop()
+            print(f"[teach] franky-sim: {exc}", file=sys.stderr)
+            return 1
+    stack = "nf_bringup.franka_stack" if franka else "nf_bringup.sim_stack"
+    procs["arm"] = ManagedProcess("arm", [py, "-m", stack, *params], env, out / "logs")
+    operator = (HandOperator(sim) if franky else PersonOperator(args.seconds) if franka
+                else KeyboardOperator(args.step) if keyboard else ScriptedOperator(task))
     stop = threading.Event()
     if keyboard:
         print("[teach] keys: w/s +x/-x, a/d +y/-y, r/f up/down "
               f"({100 * args.step:g} cm each); {args.seconds:g} s per demonstration", flush=True)
         threading.Thread(target=operator.read_terminal, args=(stop,), daemon=True).start()
-    print(f"[teach] {args.demos} demonstration(s) of {args.task} by the {args.operator} operator into {out / 'bag'}; "
+    who = ("franky-sim's scripted hand (hand-guiding, zero torque)" if franky else
+           f"you, guiding the arm at {args.robot} by hand (zero torque)" if franka else f"the {args.operator} operator")
+    print(f"[teach] {args.demos} demonstration(s) of {args.task} by {who} into {out / 'bag'}; "
           f"ROS_DOMAIN_ID {domain_id} (loopback only)", flush=True)
     import rclpy
 
@@ -284,7 +373,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if missing:
             print(f"[teach] warning: the recorder is not recording {', '.join(missing)} yet", flush=True)
         results = run_demonstrations(task, operator, args.demos, args.seconds, args.first_seed, args.force_bound)
-        (out / "demos.json").write_text(json.dumps({"task": args.task, "operator": args.operator,
+        (out / "demos.json").write_text(json.dumps({"task": args.task, "robot": args.robot,
+                                                    "operator": "hand" if franka else args.operator,
                                                     "speed": args.speed, "seconds": args.seconds,
                                                     "demos": results}, indent=1))
         ok = sum(r["success"] for r in results)
@@ -298,6 +388,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         rclpy.try_shutdown()
         procs["arm"].stop()
         procs["recorder"].stop()
+        if sim is not None:
+            sim.stop()
     return code
 
 

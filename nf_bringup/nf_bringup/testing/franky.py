@@ -6,6 +6,7 @@ scene is compiled.
     python -m nf_bringup.testing.franky --frictionless
     python -m nf_bringup.testing.franky --gear [--gear-load] [--frictionless] [--task FILE]
     kill -USR1 <its PID>                                 # a reflex: the running motion is aborted
+    kill -USR2 <its PID>                                 # --gear: a hand pushes the arm onto the fixture
 
     with FrankySim(Path("franky-sim.log"), gear=True) as sim:   # then connect pylibfranka to 127.0.0.1
         ...
@@ -23,6 +24,13 @@ franky-sim simulates no collisions and so no reflexes. ``SIGUSR1`` makes one: th
 Move command is answered ``kReflexAborted`` and the robot goes idle, holding where it is, as a real
 arm does after a reflex; libfranka then raises its "motion aborted by reflex" ``ControlException`` in
 the driver, and franky-sim accepts the automatic error recovery that follows.
+
+``SIGUSR2`` (with ``--gear``) puts a person's hand on the arm for hand-guiding tests: a spring on the
+TCP (``Hand``) pulls it from where it is along the path a person would show (``teach.scripted_waypoints``:
+over the task's clamp, if it has one, then down onto the shaft), holds the hand's orientation, and lets
+go once the path is done. It is a force on the hand body (MuJoCo's ``xfrc_applied``), so the arm moves
+only when the driver lets it (zero torque, ``franka_driver``'s ``guide``); under a stiff controller the
+hand barely moves it.
 """
 
 from __future__ import annotations
@@ -97,15 +105,24 @@ class FrankySim:
         launcher answers the signal (``reflexes``, or any of its options)."""
         if self.proc.args[0] != sys.executable:
             raise RuntimeError("inject_reflex needs FrankySim(..., reflexes=True)")
-        before = self.log_path.read_text().count("SIGUSR1")
-        self.proc.send_signal(signal.SIGUSR1)
+        return self._signal(signal.SIGUSR1, "SIGUSR1", timeout)
+
+    def push_hand(self, timeout: float = 5.0) -> str:
+        """Put the scripted hand on the arm now (SIGUSR2; ``gear`` only): the line the simulator logged."""
+        if not self.gear:
+            raise RuntimeError("push_hand needs FrankySim(..., gear=True)")
+        return self._signal(signal.SIGUSR2, "SIGUSR2", timeout)
+
+    def _signal(self, sig: int, tag: str, timeout: float) -> str:
+        before = self.log_path.read_text().count(tag)
+        self.proc.send_signal(sig)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            lines = [ln for ln in self.log_path.read_text().splitlines() if "SIGUSR1" in ln]
+            lines = [ln for ln in self.log_path.read_text().splitlines() if tag in ln]
             if len(lines) > before:
                 return lines[-1]
             time.sleep(0.02)
-        raise RuntimeError(f"franky-sim did not report the reflex within {timeout} s")
+        raise RuntimeError(f"franky-sim did not answer {tag} within {timeout} s")
 
     def stop(self) -> None:
         """SIGINT (its clean shutdown), then SIGKILL, by PID."""
@@ -156,10 +173,10 @@ def default_fixture_mouth() -> np.ndarray:
     return DriverConfig().fixture_position.copy()
 
 
-def gear_task_elements(mouth_in_world: np.ndarray, task: str = "gear") -> tuple[ET.Element, ET.Element]:
-    """(gear body for the hand, shaft body for the world) as MJCF elements, built by our gear
-    scene's own builders from ``task`` (a gear task file) and moved so the pin's top face is at
-    ``mouth_in_world``."""
+def gear_task_elements(mouth_in_world: np.ndarray, task: str = "gear") -> tuple[ET.Element, list[ET.Element]]:
+    """(gear body for the hand, [shaft body, clamp body if the task has one] for the world) as MJCF
+    elements, built by our gear scene's own builders from ``task`` (a gear task file) and moved so the
+    pin's top face is at ``mouth_in_world``."""
     import mujoco
 
     from nf_core.task_spec import load_task
@@ -178,16 +195,19 @@ def gear_task_elements(mouth_in_world: np.ndarray, task: str = "gear") -> tuple[
             scenes.contact_params(geom)
             geom.friction[0] = cell.friction
     scenes.add_shaft(spec, cell.fixture)  # base block, shoulder, pin; top face at the file's position
+    if cell.clamp is not None:
+        scenes.add_clamp(spec, cell.clamp, cell.fixture.position[1])
     root = ET.fromstring(spec.to_xml())
     gear = root.find(f".//body[@name='{part.body}']")
-    shaft = root.find(f".//body[@name='{SHAFT_BODY}']")
-    if gear is None or shaft is None:
-        raise RuntimeError("the gear scene's builders made no gear or shaft body")
+    fixed = [root.find(f".//body[@name='{name}']") for name in (SHAFT_BODY, *(("clamp",) if cell.clamp else ()))]
+    if gear is None or any(body is None for body in fixed):
+        raise RuntimeError("the gear scene's builders made no gear, shaft or clamp body")
     gear.set("childclass", "main")  # not franky-sim's "fr3" class defaults (site group etc.)
     shift = np.asarray(mouth_in_world, float) - cell.top
-    pos = np.fromstring(shaft.get("pos", "0 0 0"), sep=" ") + shift
-    shaft.set("pos", " ".join(f"{v:.6g}" for v in pos))
-    return gear, shaft
+    for body in fixed:
+        pos = np.fromstring(body.get("pos", "0 0 0"), sep=" ") + shift
+        body.set("pos", " ".join(f"{v:.6g}" for v in pos))
+    return gear, fixed
 
 
 def add_gear_task(sim: Any, mouth_in_base: np.ndarray, task: str = "gear") -> None:
@@ -200,9 +220,10 @@ def add_gear_task(sim: Any, mouth_in_base: np.ndarray, task: str = "gear") -> No
     if base.get("quat") or base.get("euler") or base.get("axisangle"):
         raise RuntimeError(f"{BASE_BODY} is turned in the world; the fixture placement assumes it is not")
     base_pos = np.fromstring(base.get("pos", "0 0 0"), sep=" ")
-    gear, shaft = gear_task_elements(base_pos + np.asarray(mouth_in_base, float), task)
+    gear, fixed = gear_task_elements(base_pos + np.asarray(mouth_in_base, float), task)
     bodies[HAND_BODY].append(gear)
-    sim.worldbody.append(shaft)
+    for body in fixed:
+        sim.worldbody.append(body)
     option = sim.scene.find("option")
     if option is None:
         option = ET.SubElement(sim.scene, "option")
@@ -294,17 +315,137 @@ def inject_reflex(server: Any) -> list[int]:
     return aborted
 
 
-def serve(server: Any) -> None:
-    """franky-sim's 1 kHz loop (``run_forever``), with a reflex injected on each ``SIGUSR1``."""
+class Hand:
+    """A person's hand on the arm (``SIGUSR2``): a spring of ``stiffness`` N/m with ``damping`` N s/m on the
+    TCP, its force bounded to ``max_force`` N, pulls towards a point that walks ``teach.scripted_waypoints``
+    at ``speed`` m/s from the TCP where the push began; a rotational spring (``k_rot`` Nm/rad, ``d_rot``
+    Nm s/rad) keeps the hand in the insertion orientation (the part square to the fixture, as a person
+    holds it; ``panda_spec.INSERTION_ROTATION``, the controller's). On the path's last leg a slow integral term
+    (``integral`` N/(m s), bounded to ``max_integral`` N) leans into what holds the part back, as a person
+    does. It lets go ``hold`` s after the point reached the path's end. No two pushes are alike, as no two of
+    a person's are: push k draws (from seed k) the path's middle waypoints up to ``vary`` m off in y and z
+    (the last leg down the fixture's axis only in height) and its speed within 20 %. Positions in the world
+    frame of the compiled model (the robot's base is not turned in it: ``add_gear_task`` checks)."""
+
+    def __init__(self, model: Any, data: Any, task: str, stiffness: float = 800.0,
+                 damping: float = 60.0, max_force: float = 40.0, speed: float = 0.12, k_rot: float = 30.0,
+                 d_rot: float = 3.0, integral: float = 400.0, max_integral: float = 10.0, hold: float = 2.0,
+                 vary: float = 0.02) -> None:
+        import mujoco
+
+        from nf_core.panda_spec import GEAR_PART, INSERTION_ROTATION
+        from nf_core.task_spec import load_task
+
+        self.model, self.data, self.task = model, data, load_task(task)
+        self.base = data.xpos[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, BASE_BODY)].copy()
+        self.body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, HAND_BODY)
+        self.site = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, GEAR_PART.tcp_site)
+        self.stiffness, self.damping, self.max_force, self.speed = stiffness, damping, max_force, speed
+        self.k_rot, self.d_rot, self.integral, self.max_integral, self.hold = k_rot, d_rot, integral, max_integral, hold
+        self.path: list[np.ndarray] = []  # waypoints left, world frame
+        self.point = np.zeros(3)  # where the spring pulls now
+        self.R0 = INSERTION_ROTATION  # the hand's orientation to keep (the robot's base is not turned)
+        self.i_force = np.zeros(3)
+        self.release_in = 0.0  # s left after the path's end
+        self.active = False
+        self.vary = vary
+        self.pushes = 0
+        self.pace = speed  # m/s of this push
+
+    def tcp(self) -> np.ndarray:
+        """The TCP (the held part's leading face), world frame."""
+        return self.data.site_xpos[self.site].copy()
+
+    def tilt(self) -> float:
+        """Degrees between the hand's orientation and the insertion orientation."""
+        R = self.data.xmat[self.body].reshape(3, 3)
+        return float(np.degrees(np.arccos(np.clip((np.trace(self.R0.T @ R) - 1.0) / 2.0, -1.0, 1.0))))
+
+    def begin(self) -> str:
+        """Grab the arm where it is and start along the path; a line for the log."""
+        from nf_bringup.teach import scripted_waypoints
+
+        x = self.tcp()
+        rng = np.random.default_rng(self.pushes)
+        self.pushes += 1
+        path = scripted_waypoints(self.task, x - self.base)
+        for w in path[1:-2]:  # the way between, not where it starts or its last leg
+            w[1:] += rng.uniform(-self.vary, self.vary, 2)
+        if len(path) > 2:  # the last leg stays on the fixture's axis: only its height varies
+            path[-2][2] += rng.uniform(-self.vary, self.vary)
+        self.pace = self.speed * rng.uniform(0.8, 1.2)
+        self.path = [self.base + w for w in path]
+        self.point = x
+        tilt = self.tilt()
+        self.i_force[:] = 0.0
+        self.release_in, self.active = self.hold, True
+        return (f"hand on the arm (SIGUSR2): from TCP {np.round(x - self.base, 4).tolist()} m through "
+                f"{len(self.path)} waypoints (base frame), the hand {tilt:.1f} deg from the insertion orientation")
+
+    def step(self, dt: float) -> str:
+        """Set the hand's wrench for the next physics step of ``dt`` s; a line for the log when it lets go."""
+        import mujoco
+
+        wrench = self.data.xfrc_applied[self.body]
+        if not self.active:
+            return ""
+        if self.path:  # the point walks towards the next waypoint
+            delta = self.path[0] - self.point
+            dist = float(np.linalg.norm(delta))
+            if dist <= self.pace * dt:
+                self.point = self.path.pop(0)
+            else:
+                self.point = self.point + delta * (self.pace * dt / dist)
+        else:
+            self.release_in -= dt
+            if self.release_in <= 0.0:
+                wrench[:] = 0.0
+                self.active = False
+                return (f"hand off the arm: TCP {np.round(self.tcp() - self.base, 4).tolist()} m (base frame), "
+                        f"the hand {self.tilt():.1f} deg from the insertion orientation")
+        vel = np.zeros(6)
+        mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_SITE, self.site, vel, 0)
+        error = self.point - self.tcp()
+        if len(self.path) <= 1:  # on the last leg: lean in
+            self.i_force = np.clip(self.i_force + self.integral * error * dt, -self.max_integral, self.max_integral)
+        force = self.stiffness * error - self.damping * vel[3:] + self.i_force
+        norm = float(np.linalg.norm(force))
+        if norm > self.max_force:
+            force *= self.max_force / norm
+        R = self.data.xmat[self.body].reshape(3, 3)
+        quat = np.zeros(4)
+        mujoco.mju_mat2Quat(quat, (self.R0 @ R.T).flatten())
+        rot = np.zeros(3)
+        mujoco.mju_quat2Vel(rot, quat, 1.0)  # rotation from R to R0, world frame
+        torque = self.k_rot * rot - self.d_rot * vel[:3]
+        # the force acts at the TCP; xfrc_applied acts at the body's centre of mass
+        torque = torque + np.cross(self.tcp() - self.data.xipos[self.body], force)
+        wrench[:3], wrench[3:] = force, torque
+        return ""
+
+
+def serve(server: Any, hand: Hand | None = None) -> None:
+    """franky-sim's 1 kHz loop (``run_forever``), with a reflex injected on each ``SIGUSR1`` and, with a
+    ``hand``, the hand put on the arm on each ``SIGUSR2``."""
     wanted: list[bool] = []
+    pushes: list[bool] = []
     signal.signal(signal.SIGUSR1, lambda *_: wanted.append(True))
+    signal.signal(signal.SIGUSR2, lambda *_: pushes.append(True))
     server.running = True
+    dt = float(hand.model.opt.timestep) if hand is not None else 0.0
     while server.running:
         if wanted:
             wanted.clear()
             aborted = inject_reflex(server)
             print(f"reflex injected (SIGUSR1): motion {aborted} aborted" if aborted
                   else "reflex asked for (SIGUSR1), but no motion runs: nothing aborted", flush=True)
+        if pushes:
+            pushes.clear()
+            print(hand.begin() if hand is not None else "SIGUSR2 needs --gear (no hand without a cell)", flush=True)
+        if hand is not None:
+            line = hand.step(dt)
+            if line:
+                print(line, flush=True)
         server.run_once(True)
 
 
@@ -353,8 +494,9 @@ def main(argv: list[str] | None = None) -> None:
             if args.gear:
                 print(gear_report(sim.model, sim.data), flush=True)
             print(f"{READY} using '{robot.hostname}' as the robot IP address", flush=True)
+            hand = Hand(sim.model, sim.data, args.task or "gear") if args.gear else None
             try:
-                serve(server)
+                serve(server, hand)
             except KeyboardInterrupt:
                 print("\nShutting down server...", flush=True)
 
