@@ -239,12 +239,13 @@ def test_fit_loop_gives_the_loop_the_fr3s_ranges_instead_of_the_pandas():
 
 
 class HandRobot(FakeRobot):
-    """A FakeRobot moved by a hand: while ``hand_dq`` is set the joints move at it whatever the command;
-    keeps every command."""
+    """A FakeRobot moved by a hand: while ``hand_dq`` is set the joints move at it whatever the command
+    (until tick ``hand_until``, then the hand holds them still); keeps every command."""
 
     def __init__(self) -> None:
         super().__init__()
         self.hand_dq: np.ndarray | None = None
+        self.hand_until = 1 << 62
         self.commands: list[np.ndarray] = []
 
     def writeOnce(self, torques: _Torques) -> None:
@@ -252,7 +253,7 @@ class HandRobot(FakeRobot):
         if self.hand_dq is None:
             super().writeOnce(torques)
         else:
-            self.dq = self.hand_dq.copy()
+            self.dq = self.hand_dq.copy() if self.ticks < self.hand_until else np.zeros(7)
             self.q = self.q + 0.001 * self.dq
 
 
@@ -264,11 +265,11 @@ def test_hand_guiding_commands_zero_torque_then_the_hold_takes_over_from_zero_wh
     try:
         x_ref = loop.policy.x_ref + np.array([0.05, 0.0, 0.0])  # a pull of 15 N: the episode's law is not zero
         run = _episode(x_ref, seconds=0.6)
+        robot.hand_until = robot.ticks + 1_000_000  # moves until told where to stop
+        robot.hand_dq = np.array([0.0, 0.2, 0.0, 0.1, 0.0, 0.0, 0.0])  # a person moves the arm ...
         driver.begin_episode(0, run).result(timeout=20)
         first = len(robot.commands)
-        robot.hand_dq = np.array([0.0, 0.2, 0.0, 0.1, 0.0, 0.0, 0.0])  # a person moves the arm
-        time.sleep(0.3)
-        robot.hand_dq = np.zeros(7)
+        robot.hand_until = robot.ticks + 300  # ... for 0.3 s of robot time, then holds it still
         assert _wait(lambda: loop.episode is None)
         ends = [e for e in host.drain() if e.kind == EPISODE_END]
         assert ends and ends[-1].text == "", "a guided episode that stays within the limits completes"

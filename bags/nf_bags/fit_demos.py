@@ -205,6 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", type=Path, action="append", required=True,
                     help="the learner's settings (task file, overlays): the flow's architecture, the goal")
     ap.add_argument("--task", default=None, help="the task (default: the settings' task)")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                    help="any other learner setting, e.g. --set potential_force_bound=60 (the law's pull bound, "
+                         "for an arm; repeatable)")
     ap.add_argument("--out", type=Path, required=True, help="folder for checkpoint.pt, fit.json, landscape.png")
     ap.add_argument("--max-demos", type=int, default=0, help="use only the first N demonstrations (0: all)")
     ap.add_argument("--stiffness", type=float, nargs=3, default=DEMO_STIFFNESS, help="diagonal of S, N/m")
@@ -218,7 +221,16 @@ def main(argv: list[str] | None = None) -> int:
                          f"{100 * DEMO_SHIFT:g} cm move of the demonstrations (default 0.2: 2 mm); 0: the "
                          "learner's own random directions")
     args = ap.parse_args(argv)
-    cfg = TrainConfig.from_sources(args.config, {"seed": args.seed, **({"task": args.task} if args.task else {})})
+    overrides: dict[str, object] = {"seed": args.seed, **({"task": args.task} if args.task else {})}
+    for item in args.sets:
+        key, sep, value = item.partition("=")
+        if not sep:
+            ap.error(f"--set expects KEY=VALUE, got {item!r}")
+        overrides[key.strip()] = value.strip()
+    try:
+        cfg = TrainConfig.from_sources(args.config, overrides)
+    except (ValueError, TypeError) as exc:
+        ap.error(str(exc))
     task = load_task(cfg.task)
     paths, left_out = [], []
     for bag in args.bags:

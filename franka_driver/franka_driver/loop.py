@@ -176,7 +176,8 @@ class FrankaDriverLoop(DriverLoop):
 
     ``robot``: a ``pylibfranka.Robot`` (or anything with ``start_torque_control``, ``read_once``,
     ``stop``, ``automatic_error_recovery``); ``tcp(q)``: the TCP position (m) for joint positions.
-    ``after_tick(q, dq, tau, stamp_ns)`` runs after each write (keep it to a few microseconds).
+    ``after_tick(q, dq, tau, stamp_ns)`` runs after each write, ``tau`` the command written (keep it to a
+    few microseconds).
     ``rt_priority``: the loop thread's SCHED_FIFO priority when ``start`` runs it (0: normal).
     """
 
@@ -497,7 +498,7 @@ class FrankaDriverLoop(DriverLoop):
         if self._reset is not None:
             self._reset_progress(x, stamp_ns)
         if self.after_tick is not None:
-            self.after_tick(q, self._dq, self.host.tau, stamp_ns)
+            self.after_tick(q, self._dq, self._sent, stamp_ns)  # the command written (zero while guided)
 
     def _on_franka_error(self, exc: BaseException) -> None:
         """A reflex or a lost connection: torque control has ended. Abort, latch the hold, keep why."""
