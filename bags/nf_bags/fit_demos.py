@@ -35,7 +35,10 @@ from learner_node.trainer import EVAL_SEED_BASE, Trainer, make_evaluator
 from nf_core.task_spec import TaskSpec, load_task
 
 RUNNING = 1  # nf_msgs/ControllerStatus.MODE_RUNNING
-TELEPORT = 0.02  # m between two recorded states: a simulator's reset, not a motion
+# a simulator's reset, not a motion: a step of more than 2 cm between two recorded states, faster than 2 m/s
+# (a robot's states may be further apart when their publisher was late, but the arm moved in between)
+TELEPORT = 0.02  # m
+TELEPORT_SPEED = 2.0  # m/s
 REACHED = 0.02  # m: a demonstration that ends farther than this from the goal shows no way there; left out
 # S = diag(400, 400, 135) N/m, D = diag(40, 40, 100) N s/m: a stiff, quick carry across and a soft, slow
 # latent z (the part is carried over first and lowered last; docs/results/gear_clamp)
@@ -79,7 +82,9 @@ def demo_paths(bag: str | Path, task: TaskSpec) -> list[np.ndarray]:
         rows = np.flatnonzero((traj.stamp_ns >= a) & (traj.stamp_ns <= b))
         if len(rows) > 1:
             path = np.array([arm.tcp_position(traj.q[i]) for i in rows])
-            jumps = np.flatnonzero(np.linalg.norm(np.diff(path, axis=0), axis=1) > TELEPORT)
+            step = np.linalg.norm(np.diff(path, axis=0), axis=1)
+            dt = np.maximum(np.diff(traj.stamp_ns[rows]) * 1e-9, 1e-9)
+            jumps = np.flatnonzero((step > TELEPORT) & (step / dt > TELEPORT_SPEED))
             paths.append(path[jumps[-1] + 1 :] if len(jumps) else path)  # from the reset on
     return paths
 

@@ -148,8 +148,8 @@ def cell_parameters(task: str) -> list[str]:
 
 
 CLAMP_CLEARANCE = 0.15  # m: the TCP's height above a clamp's top while a reset motion passes over it
-# N: a reset's pull in a clamp's cell. Lifting gear_clamp's seated gear, the orientation spring presses its
-# bore against the pin: on franky-sim 40 N and 60 N stalled in some resets, 100 N in none (docs/hardware.md)
+# N: a reset's pull in a clamp's cell: lifting a gear seated behind a clamp, the orientation spring presses
+# its bore against the pin, and the reset must still pull it off (docs/results/teach)
 CLAMP_RESET_FORCE = 100.0
 
 

@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from nf_core.task_spec import TaskSpec, load_task
+from nf_core.task_spec import TaskSpec, load_task, scripted_waypoints
 
 from .processes import ManagedProcess, allocate_domain_id, ros_env, stop_on_signals
 from .stack import SIM_STACK_PARAMS, write_task_parameters
@@ -54,22 +54,6 @@ DEMO_SEED_BASE = 500_000_000  # demonstration starts: their own seeds, apart fro
 TEACH_GAINS = (300.0, 40.0)  # N/m, N s/m: the teaching spring S = 300 I, D = 40 I on the identity flow
 ARRIVED = 0.002  # m: the scripted operator goes on to the next waypoint once the anchor is this close
 KEYS = {"w": (0, 1.0), "s": (0, -1.0), "a": (1, 1.0), "d": (1, -1.0), "r": (2, 1.0), "f": (2, -1.0)}
-
-
-def scripted_waypoints(task: TaskSpec, start: np.ndarray) -> list[np.ndarray]:
-    """What a person would show from TCP ``start`` (m): with a clamp, towards it at the start's height
-    until the part's rim is 3 cm from its face, up while closing to 0.5 cm, over it 12 cm above its top
-    to above the fixture, and down onto it; without one, to 5 cm above the fixture and down."""
-    goal = task.goal_position
-    if task.clamp is None:
-        return [np.array([goal[0], goal[1], task.top[2] + 0.05]), goal]
-    rim = task.part.outer_radius if task.kind != "peg" else task.part.radius
-    face = task.clamp.center_x + task.clamp.half_thickness  # the side the starts are on (+x)
-    over = task.clamp.top + 0.12
-    return [np.array([face + rim + 0.03, start[1], start[2]]),
-            np.array([face + rim + 0.005, start[1], over]),
-            np.array([goal[0], goal[1], over - 0.03]),
-            goal]
 
 
 class ScriptedOperator:

@@ -440,3 +440,19 @@ def check_task(spec: TaskSpec) -> None:
                                 f"got {list(rng)}")
     if spec.start.joint_std is not None and not 0.0 <= spec.start.joint_std <= 0.5:
         raise TaskFileError(f"{where}: start: joint_std must be in [0, 0.5] rad, got {spec.start.joint_std:g}")
+
+
+def scripted_waypoints(task: TaskSpec, start: np.ndarray) -> list[np.ndarray]:
+    """What a person would show from TCP ``start`` (m): with a clamp, towards it at the start's height
+    until the part's rim is 3 cm from its face, up while closing to 0.5 cm, over it 12 cm above its top
+    to above the fixture, and down onto it; without one, to 5 cm above the fixture and down."""
+    goal = task.goal_position
+    if task.clamp is None:
+        return [np.array([goal[0], goal[1], task.top[2] + 0.05]), goal]
+    rim = task.part.outer_radius if task.kind != "peg" else task.part.radius
+    face = task.clamp.center_x + task.clamp.half_thickness  # the side the starts are on (+x)
+    over = task.clamp.top + 0.12
+    return [np.array([face + rim + 0.03, start[1], start[2]]),
+            np.array([face + rim + 0.005, start[1], over]),
+            np.array([goal[0], goal[1], over - 0.03]),
+            goal]

@@ -26,7 +26,7 @@ arm does after a reflex; libfranka then raises its "motion aborted by reflex" ``
 the driver, and franky-sim accepts the automatic error recovery that follows.
 
 ``SIGUSR2`` (with ``--gear``) puts a person's hand on the arm for hand-guiding tests: a spring on the
-TCP (``Hand``) pulls it from where it is along the path a person would show (``teach.scripted_waypoints``:
+TCP (``Hand``) pulls it from where it is along the path a person would show (``nf_core.task_spec.scripted_waypoints``:
 over the task's clamp, if it has one, then down onto the shaft), holds the hand's orientation, and lets
 go once the path is done. It is a force on the hand body (MuJoCo's ``xfrc_applied``), so the arm moves
 only when the driver lets it (zero torque, ``franka_driver``'s ``guide``); under a stiff controller the
@@ -317,7 +317,7 @@ def inject_reflex(server: Any) -> list[int]:
 
 class Hand:
     """A person's hand on the arm (``SIGUSR2``): a spring of ``stiffness`` N/m with ``damping`` N s/m on the
-    TCP, its force bounded to ``max_force`` N, pulls towards a point that walks ``teach.scripted_waypoints``
+    TCP, its force bounded to ``max_force`` N, pulls towards a point that walks ``scripted_waypoints``
     at ``speed`` m/s from the TCP where the push began; a rotational spring (``k_rot`` Nm/rad, ``d_rot``
     Nm s/rad) keeps the hand in the insertion orientation (the part square to the fixture, as a person
     holds it; ``panda_spec.INSERTION_ROTATION``, the controller's). On the path's last leg a slow integral term
@@ -363,7 +363,7 @@ class Hand:
 
     def begin(self) -> str:
         """Grab the arm where it is and start along the path; a line for the log."""
-        from nf_bringup.teach import scripted_waypoints
+        from nf_core.task_spec import scripted_waypoints
 
         x = self.tcp()
         rng = np.random.default_rng(self.pushes)
