@@ -54,7 +54,7 @@ def episode_windows(bag: str | Path) -> list[tuple[int, int]]:
     windows: list[list[int]] = []
     last = None  # the episode id of the previous status (None: not running)
     for d in read_messages(bag, [CONTROLLER_STATUS]):
-        now = int(d.msg.episode_id) if d.msg.mode == RUNNING else None
+        now = int(d.msg.episode_id) if d.msg.mode == RUNNING and d.msg.episode_id else None
         t = stamp_ns(d.msg.header)
         if now is not None and now != last:
             windows.append([t, t])

@@ -656,6 +656,8 @@ class NFControllerNode(Node):
         msg.header.stamp = _stamp(self.host.last_stamp_ns)
         msg.header.frame_id = BASE_FRAME
         run = loop.episode
+        if mode == MODE_RUNNING and run is None:  # the episode ended on the tick thread since the mode was read
+            msg.mode = loop.mode
         if run is not None:
             msg.episode_id = run.spec.episode_id
         if x is not None:
