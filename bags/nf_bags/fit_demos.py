@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from learner_node.config import TrainConfig
+from learner_node.config import TrainConfig, parse_sets
 from learner_node.flow_fit import demo_basis, demo_samples, fit_flow_to_demos, latent_cosines
 from learner_node.policy import NFPolicy
 from learner_node.trainer import EVAL_SEED_BASE, Trainer, make_evaluator
@@ -227,12 +227,8 @@ def main(argv: list[str] | None = None) -> int:
                          "learner's own random directions")
     args = ap.parse_args(argv)
     overrides: dict[str, object] = {"seed": args.seed, **({"task": args.task} if args.task else {})}
-    for item in args.sets:
-        key, sep, value = item.partition("=")
-        if not sep:
-            ap.error(f"--set expects KEY=VALUE, got {item!r}")
-        overrides[key.strip()] = value.strip()
     try:
+        overrides.update(parse_sets(args.sets))
         cfg = TrainConfig.from_sources(args.config, overrides)
     except (ValueError, TypeError) as exc:
         ap.error(str(exc))

@@ -420,6 +420,17 @@ def _diagonal(dim: int, value: float, axial: float | None) -> np.ndarray:
 _FIELD_NAMES = frozenset(f.name for f in fields(TrainConfig))
 
 
+def parse_sets(items: list[str]) -> dict[str, str]:
+    """``KEY=VALUE`` strings (a command line's ``--set``) as settings to override; ValueError names a bad one."""
+    out: dict[str, str] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
+        out[key.strip()] = value.strip()
+    return out
+
+
 def read_yaml_params(path: str | Path) -> dict[str, Any]:
     """Training settings from a ROS 2 parameters YAML: ``/**`` (shared, other keys skipped) then
     ``learner_node`` (unknown keys are errors). Nested parameter groups are flattened with dots."""

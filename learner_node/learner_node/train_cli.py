@@ -13,7 +13,7 @@ import logging
 import sys
 from pathlib import Path
 
-from .config import TASKS, TrainConfig, read_yaml_params
+from .config import TASKS, TrainConfig, parse_sets, read_yaml_params
 from .trainer import CHECKPOINT, Trainer, run_evaluations
 
 
@@ -54,11 +54,10 @@ def main(argv: list[str] | None = None) -> int:
         value = getattr(args, flag)
         if value is not None:
             overrides[key] = str(value) if isinstance(value, Path) else value
-    for item in args.sets:
-        key, sep, value = item.partition("=")
-        if not sep:
-            ap.error(f"--set expects KEY=VALUE, got {item!r}")
-        overrides[key.strip()] = value.strip()
+    try:
+        overrides.update(parse_sets(args.sets))
+    except ValueError as exc:
+        ap.error(str(exc))
     try:
         if args.config is not None and "task" in overrides:
             yaml_task = read_yaml_params(args.config).get("task")
