@@ -65,6 +65,7 @@ def learner(domain: int, out: Path, log: Path, iterations: int) -> RosProcess:
     return RosProcess(args, domain, log)
 
 
+@pytest.mark.timeout(900)  # franky-sim, the stack and deploy_policy starting on a loaded machine
 def test_stack_holds_without_a_policy_then_follows_one(tmp_path):
     # the torque loop thread at a realtime priority where this user may have one (diagnostics say
     # what the kernel gave it); normal scheduling elsewhere
@@ -122,6 +123,8 @@ def test_stack_holds_without_a_policy_then_follows_one(tmp_path):
             deploy = RosProcess(["-m", "learner_node.deploy", str(checkpoint), "--x-ref", *map(str, goal),
                                  "--version", "8", "--seconds", "120"], domain, tmp_path / "deploy.log")
             with deploy:
+                # deploy_policy loads torch before it publishes: a minute or more on a loaded machine
+                assert probe.spin_until(lambda: "published" in deploy.log() or not deploy.alive(), 240), deploy.log()
                 assert probe.spin_until(lambda: statuses[-1][1].policy_version == 8, 30), deploy.log() + stack.log()
                 ticks_at_policy = robot_ticks()
                 assert probe.spin_until(lambda: robot_ticks() > ticks_at_policy + 3000, 300), stack.log()
