@@ -12,7 +12,7 @@ import pytest
 
 from nf_controller_node.arm_model import ArmModel
 from nf_controller_node.control_loop import ControlLoop, LoopConfig
-from nf_controller_node.host import EPISODE_END, ControllerHost
+from nf_controller_node.host import CHUNK, EPISODE_END, ControllerHost
 from nf_core.driver_loop import DriverLoop
 from nf_core.episode import EpisodeRun, EpisodeSpec
 from nf_core.tick_timing import TickTiming
@@ -199,12 +199,20 @@ def test_the_sim_runs_an_episode_from_the_reset_state(realtime):
     try:
         driver.begin_episode(3, run).result(timeout=30.0)
         deadline = time.monotonic() + 30.0
-        while not any(e.kind == EPISODE_END for e in host.drain()):
+        events = []
+        while not any(e.kind == EPISODE_END for e in events):
             assert time.monotonic() < deadline
             time.sleep(0.002)
+            events += host.drain()
     finally:
         driver.stop()
     assert run.done and run.steps >= 50 and driver.bad_torques == 0
+    # a chunk is stamped as its first sample (RolloutChunk.msg), the episode's first state, not as the
+    # state that closed it: a bag's rollouts line up with its joint states
+    chunks = [e for e in events if e.kind == CHUNK]
+    end = next(e for e in events if e.kind == EPISODE_END)
+    assert chunks and chunks[0].stamp_ns == host.loop.episode_start_ns > 0
+    assert end.stamp_ns - chunks[0].stamp_ns >= (run.steps - 1) * 1_000_000
     assert (driver.timing is not None) == realtime
     if realtime:
         assert driver.timing.ticks >= 50 and driver.scheduling != "not started"

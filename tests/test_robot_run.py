@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from nf_bringup.robot_run import ARM_STIFFNESS_FLOOR, FRANKY_GOAL, Progress, _parse, robot_commands
@@ -217,3 +218,30 @@ def test_run_robot_end_to_end_on_franky_sim(tmp_path):
     with open(bags[0], "rb") as f:  # the mcap library's own reader, not the project's
         topics = {channel.topic for _, channel, _ in make_reader(f).iter_messages()}
     assert {"/policy_parameters", "/joint_states", "/rollouts"} <= topics, topics
+    # the bag re-simulates in closed loop (nf_bags.resim_policy): each episode's policy with its recorded noise,
+    # from its recorded start, in our simulated cell (franky's: the shaft's top 2 cm lower than gear.yaml's)
+    # with the friction identified from the bag, follows the FR3's joints
+    from nf_bags.friction import identify_bag
+    from nf_bags.reader import joint_trajectory, rollout_chunks, stamp_ns
+    from nf_bags.resim_policy import START_MATCH, resimulate_bag
+
+    from nf_controller_node.arm_model import ArmModel
+    from nf_core.task_spec import held_part_inertia
+
+    text = (Path(__file__).resolve().parents[1] / "config" / "tasks" / "gear.yaml").read_text()
+    assert "position: [0.5, 0.0, 0.09]" in text
+    cell = tmp_path / "franky_cell.yaml"
+    cell.write_text(text.replace("position: [0.5, 0.0, 0.09]", "position: [0.5, 0.0, 0.07]"))
+    friction = identify_bag(out / "bag").sim_parameters()
+    results = resimulate_bag(out / "bag", task=str(cell), friction=(friction["joint_friction"],
+                                                                     friction["joint_viscous"]))
+    assert len(results) >= 3, results
+    assert all(r.max_q_error < 0.05 and r.final_tcp_error < 0.01 for r in results), results
+    assert sum(r.recorded_success == r.simulated_success for r in results) >= len(results) - 1, results
+    # every chunk is stamped as its first sample: the joint states at that stamp put the TCP there
+    traj, arm = joint_trajectory(out / "bag"), ArmModel(part=held_part_inertia("gear"))
+    for chunks in rollout_chunks(out / "bag").values():
+        first = min(chunks, key=lambda c: c.seq)
+        q = [np.interp(stamp_ns(first.header), traj.stamp_ns, traj.q[:, k]) for k in range(7)]
+        assert np.linalg.norm(arm.tcp_position(np.array(q)) - np.array(first.x[:3])) < START_MATCH
+    print("closed-loop re-simulation:", [(round(r.max_q_error, 4), round(1e3 * r.final_tcp_error, 1)) for r in results])

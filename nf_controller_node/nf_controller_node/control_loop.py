@@ -211,6 +211,7 @@ class ControlLoop:
         self.episode: EpisodeRun | None = None
         self._episode_from = 0  # ns: the episode starts at the first state stamped at or after this
         self._episode_last = -1  # ns: stamp of the last state the episode consumed
+        self.episode_start_ns = 0  # ns: stamp of the running (or last) episode's first state
         self._episode_world_reset = False  # the episode's first command may skip the rate limit
         self.resetting = False  # the world is being reset for an episode: answer no state
         self._episode_eps = np.zeros(3)
@@ -384,6 +385,7 @@ class ControlLoop:
         self.controller.engage_teleop()
         self._episode_from = int(first_stamp_ns)
         self._episode_last = -1
+        self.episode_start_ns = 0  # stamp of the episode's first state, once it has one
         self._episode_world_reset = bool(world_was_reset)
         self.episode_active = True
 
@@ -530,8 +532,10 @@ class ControlLoop:
         if not new and not ctrl.fault:
             return self._episode_tau
         if new:
-            if run.steps == 0 and self._episode_world_reset:
-                ctrl.reset_rate_limit()  # the sim teleported the arm: the old command acts on nothing
+            if run.steps == 0:
+                self.episode_start_ns = stamp_ns  # its samples' t count from here
+                if self._episode_world_reset:
+                    ctrl.reset_rate_limit()  # the sim teleported the arm: the old command acts on nothing
             self._episode_eps = run.noise()
         tau = ctrl.step(q, dq, self._episode_eps)
         if new and not ctrl.fault:

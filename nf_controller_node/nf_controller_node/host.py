@@ -53,7 +53,7 @@ class HostEvent:
     run: EpisodeRun | None = None
     chunk: Chunk | None = None
     text: str = ""
-    stamp_ns: int = 0  # stamp of the state that produced it
+    stamp_ns: int = 0  # stamp of the state that produced it (a chunk: of its first sample)
 
 
 class EpisodeDriver(Protocol):
@@ -175,8 +175,9 @@ class ControllerHost:
         run = loop.episode
         if run is not None and run.steps:
             if run.closed >= run.next_chunk_closes:
-                for chunk in run.ready_chunks():
-                    self._emit(HostEvent(CHUNK, run=run, chunk=chunk, stamp_ns=stamp_ns))
+                for chunk in run.ready_chunks():  # stamped as its first sample (RolloutChunk.msg)
+                    first_ns = loop.episode_start_ns + round(float(chunk.t[0]) * 1e9) if len(chunk.t) else stamp_ns
+                    self._emit(HostEvent(CHUNK, run=run, chunk=chunk, stamp_ns=first_ns))
             if fault or loop.fault:
                 self.end_episode(f"aborted: safe hold ({fault or loop.fault})")
             elif run.done:
