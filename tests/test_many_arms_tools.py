@@ -67,6 +67,19 @@ def test_arms_get_a_namespace_the_lockstep_file_and_the_learner_their_names(tmp_
     assert _after(separate["arm1-sim"], "-r") == ["__ns:=/arm1"]
 
 
+def test_a_resimulable_run_gives_every_sim_every_step_and_nothing_else(tmp_path):
+    every = "sim_bridge:monitor_period:=0.0"
+    for composed in (True, False):
+        cmds = node_commands([CONFIG], tmp_path, 2, composed=composed, arms=2, resimulable=True)
+        sims = {n for n, argv in cmds.items() if argv[2] in ("nf_bringup.sim_stack", "sim_bridge_node.node")}
+        assert len(sims) == 2 and all(_after(cmds[n], "-p") == [every] for n in sims), cmds
+        assert not any(every in argv for n, argv in cmds.items() if n not in sims)
+    assert not any(every in argv for argv in node_commands([CONFIG], tmp_path, 2).values())
+    # the file's own setting that this overrides (config/sim.yaml thins them)
+    sim = yaml.safe_load(Path(FILES[0]).read_text())["/**/sim_bridge"]["ros__parameters"]
+    assert sim["monitor_period"] > 0.0
+
+
 def test_summary_lists_rollouts_per_arm_and_what_ran_again(tmp_path):
     arms_json = tmp_path / "arms.json"
     arms_json.write_text(json.dumps({"arms": {"/arm0": {"done": 9, "lost": 1, "late": 1},

@@ -52,6 +52,7 @@ def _interpolate(stamps: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.n
 
 
 START_MATCH = 0.005  # m: the joint states at the chunk's stamp put the TCP this close to its first sample
+START_GAP = 50e6  # ns: joint states further apart than this around the start cannot give it (a publisher stalled)
 
 
 def episode_start(chunks: list, rec: object, traj: object, arm: object) -> int:
@@ -69,8 +70,14 @@ def episode_start(chunks: list, rec: object, traj: object, arm: object) -> int:
         q = _interpolate(stamps, traj.q, at)
         return float(np.abs(np.array([arm.tcp_position(row) for row in q]) - x).max())
 
-    if stamps[0] <= first <= stamps[-1] and miss(first) <= START_MATCH:
-        return int(first)
+    if stamps[0] <= first <= stamps[-1]:
+        i = int(np.searchsorted(stamps, first))
+        gap = stamps[min(i, len(stamps) - 1)] - stamps[max(i - 1, 0)]
+        if gap > START_GAP:
+            raise NotCoveredError(f"episode {chunks[0].episode_id}: no joint state recorded for {gap * 1e-6:.0f} ms "
+                                  "around its start")
+        if miss(first) <= START_MATCH:
+            return int(first)
     span = len(chunks[0].t) * float(np.median(np.diff(rec.t))) * 1e9 if len(rec.t) > 1 else 1e9
     offsets = np.arange(-span - 5e6, 5e6, 1e6)  # 1 ms steps back over one chunk
     coarse = min(offsets[::10], key=lambda o: miss(first + o))

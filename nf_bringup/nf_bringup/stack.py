@@ -74,11 +74,13 @@ def stack_configs(configs: Sequence[Path]) -> list[Path]:
 
 
 def node_commands(configs: Sequence[Path], run_dir: Path, iterations: int | None = None, extra: Sequence[str] = (),
-                  composed: bool = True, arms: int = 0) -> dict[str, list[str]]:
+                  composed: bool = True, arms: int = 0, resimulable: bool = False) -> dict[str, list[str]]:
     """The argv of every process of the stack, keyed by the name used in the log prefix; ``arms`` > 0:
-    that many arms under ``/arm0`` ..; ``iterations`` None: the files' own."""
+    that many arms under ``/arm0`` ..; ``iterations`` None: the files' own; ``resimulable``: the sim
+    publishes every step's joint state and command (``monitor_period`` 0), so the bag re-simulates exactly."""
     py = sys.executable
     params = ["--ros-args"] + [arg for path in stack_configs(configs) for arg in ("--params-file", str(path))]
+    every_step = ["-p", "sim_bridge:monitor_period:=0.0"] if resimulable else []
     lockstep_controller: list[str] = []  # idle_mode pause, no miss latch: config/sim.yaml's /**/nf_controller
     cmds: dict[str, list[str]] = {}
     for i, ns in enumerate(arm_namespaces(arms)):
@@ -87,9 +89,9 @@ def node_commands(configs: Sequence[Path], run_dir: Path, iterations: int | None
         # the cell's robot description and transforms, for viewers and the bag (reads the files' task)
         cmds[f"{name}-state" if ns else "state"] = [py, "-m", "nf_bringup.robot_state", *params, *remap]
         if composed:
-            cmds[name] = [py, "-m", "nf_bringup.sim_stack", *params, *lockstep_controller, *remap]
+            cmds[name] = [py, "-m", "nf_bringup.sim_stack", *params, *lockstep_controller, *every_step, *remap]
         else:
-            cmds[f"{name}-sim" if ns else "sim"] = [py, "-m", "sim_bridge_node.node", *params, *remap]
+            cmds[f"{name}-sim" if ns else "sim"] = [py, "-m", "sim_bridge_node.node", *params, *every_step, *remap]
             cmds[f"{name}-controller" if ns else "controller"] = [
                 py, "-m", "nf_controller_node.node", *params, *lockstep_controller, *remap]
     # the arms by name: the learner uses them from the first iteration (discovery would add them too)
@@ -189,6 +191,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--arms", type=int, default=None, metavar="N",
                         help="N arms under /arm0 .. /arm{N-1}, one learner dispatching to all (default: one arm "
                              "without a namespace)")
+    parser.add_argument("--resimulable", action="store_true",
+                        help="record every simulated step's joint state and command, so that nf_bags.resim "
+                             "re-simulates the bag exactly (config/sim.yaml thins them to every 10 ms); implies "
+                             "--separate: the composed lockstep loop steps faster than a recorder takes 1 kHz topics")
     parser.add_argument("--live", action="store_true",
                         help="also serve the live view of the fleet (fleet_view: Foxglove WebSocket on "
                              "ws://127.0.0.1:8765)")
@@ -204,6 +210,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.arms is not None and args.arms < 1:
         parser.error("--arms must be >= 1")
     args.arms = args.arms or 0
+    if args.resimulable and not args.separate:
+        print("[stack] --resimulable: the sim and the controller as two processes (--separate), every step recorded",
+              flush=True)
+        args.separate = True
     run_dir = args.out or Path("runs") / time.strftime("%Y%m%d-%H%M%S")
     try:
         from_checkpoint = from_checkpoint_args(args.from_checkpoint, run_dir)
@@ -227,7 +237,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"[stack] run folder {run_dir}, ROS_DOMAIN_ID {env['ROS_DOMAIN_ID']} (loopback only); "
           f"{iterations} iterations; Ctrl-C stops cleanly and keeps the checkpoint", flush=True)
     cmds = node_commands(args.config, run_dir, args.iterations, [*from_checkpoint, *args.learner_arg],
-                         composed=not args.separate, arms=args.arms)
+                         composed=not args.separate, arms=args.arms, resimulable=args.resimulable)
     namespaces = arm_namespaces(args.arms)
     ready, policy_lines = recorder_ready(namespaces), policy_ready(namespaces)
     arm = [n for n in cmds if n not in ("learner", "recorder")]

@@ -42,7 +42,8 @@ class SimDriverLoop(DriverLoop):
 
     def __init__(self, bridge: SimBridge, host: LoopHost, realtime: bool,
                  after_step: Callable[[], None] = lambda: None, keep_timing: bool = False,
-                 spin: float = 0.0, warm: bool = False, rt_priority: int = 0) -> None:
+                 spin: float = 0.0, warm: bool = False, rt_priority: int = 0,
+                 after_reset: Callable[[], None] = lambda: None) -> None:
         if tuple(host.joint_names) != tuple(bridge.joint_names):
             raise ValueError(f"controller joints {host.joint_names} differ from the simulated arm's "
                              f"{list(bridge.joint_names)}")
@@ -51,6 +52,7 @@ class SimDriverLoop(DriverLoop):
         self.bridge = bridge
         self.realtime = realtime
         self.after_step = after_step
+        self.after_reset = after_reset  # the node publishes the reset state (a bag's episode starts there)
         self._deadline = DeadlineWait(spin if realtime else 0.0)  # realtime: how the loop waits for a period
         self._warm = host.warm if warm else None  # realtime: the controller's cache warm-up before the spin
         self._success_depth = bridge.env.scene.success_depth
@@ -68,6 +70,7 @@ class SimDriverLoop(DriverLoop):
         def reset_and_start() -> None:
             self.bridge.reset(seed=seed)
             self._report_task()
+            self.after_reset()
             self.host.start_episode(run, self.bridge.stamp_ns, world_was_reset=True)
             if not done.done():
                 done.set_result(None)

@@ -201,7 +201,8 @@ class SimBridgeNode(Node):
         if host is not None:
             self.driver = SimDriverLoop(self.bridge, host, realtime=not self.lockstep, after_step=self._after_step,
                                         keep_timing=bool(p["response_log"]), spin=p["realtime_spin"],
-                                        warm=bool(p["realtime_warm"]), rt_priority=rt_priority)
+                                        warm=bool(p["realtime_warm"]), rt_priority=rt_priority,
+                                        after_reset=self._after_reset)
             self._cmd = Float64MultiArray()
             self._cmd_dim = MultiArrayDimension(label=topics.stamp_label(0), size=n, stride=n)
             self._cmd.layout.dim = [self._cmd_dim]
@@ -326,6 +327,12 @@ class SimBridgeNode(Node):
             else:
                 skipped += 1
         self.monitor_skipped += skipped
+
+    def _after_reset(self) -> None:
+        """Composed: the reset state (zero velocity and effort) to whoever listens, whatever the monitor
+        period, as the separate node publishes it: a bag's episodes start there (``nf_bags.resim``)."""
+        if self._listeners()[0]:
+            self._publish_state()
 
     def _listeners(self) -> tuple[bool, bool, bool, bool]:
         """Composed: whether joint_states, the applied commands, clock and task_status have
