@@ -452,6 +452,7 @@ def scripted_waypoints(task: TaskSpec, start: np.ndarray) -> list[np.ndarray]:
     rim = task.part.outer_radius if task.kind != "peg" else task.part.radius
     face = task.clamp.center_x + task.clamp.half_thickness  # the side the starts are on (+x)
     over = task.clamp.top + 0.12
-    return [np.array([max(start[0], face + rim + 0.005), start[1], over]),
+    return [np.array([face + rim + 0.03, start[1], start[2]]),
+            np.array([face + rim + 0.005, start[1], over]),
             np.array([goal[0], goal[1], over - 0.03]),
             goal]
