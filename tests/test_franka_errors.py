@@ -9,6 +9,7 @@ from __future__ import annotations
 import signal
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -247,8 +248,23 @@ def test_a_reflex_waits_for_a_person_then_an_episode_runs_to_its_end(tmp_path):
 def test_an_episode_asked_for_during_an_automatic_recovery_starts_after_it(tmp_path):
     """With automatic recovery, an episode asked for while torque control is down (after a reflex,
     before ``recovery_wait`` has passed) is neither refused nor started: its reset motion waits for
-    the restarted session, then the episode runs to its end."""
-    sim = FrankySim(tmp_path / "franky-sim.log", reflexes=True)
+    the restarted session, then the episode runs to its end. A starved franky-sim (pure Python) can
+    garble a packet mid-episode on a loaded machine (libfranka: "incorrect object size"): then the
+    whole scenario runs once more, and only once."""
+    try:
+        _episode_during_recovery(tmp_path / "first")
+    except _SimTransportError as exc:
+        print(f"franky-sim transport error, the scenario runs again: {exc}")
+        _episode_during_recovery(tmp_path / "again")
+
+
+class _SimTransportError(AssertionError):
+    """The episode ended on a libfranka transport error that no reflex of the test caused."""
+
+
+def _episode_during_recovery(folder: Path) -> None:
+    folder.mkdir(parents=True)
+    sim = FrankySim(folder / "franky-sim.log", reflexes=True)
     rig = None
     try:
         wait = 2.0  # s before the automatic recovery: time to ask for the episode meanwhile
@@ -268,6 +284,8 @@ def test_an_episode_asked_for_during_an_automatic_recovery_starts_after_it(tmp_p
         assert d.sessions == 2 and d.recoveries == 1 and d.resets_done == 1 and not d.in_error, d.last_error
         assert not rig.loop.fault, rig.loop.fault  # automatic: no latched hold
         ends = _episode_ends(rig, 60.0)
+        if ends and "incorrect object size" in ends[-1].text:
+            raise _SimTransportError(ends[-1].text)
         assert ends and ends[-1].run.spec.episode_id == 10 and ends[-1].text == "", ends
         assert d.exceptions == 1, d.last_error
     finally:
