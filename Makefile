@@ -10,7 +10,7 @@ setup:  ## create .venv, install pinned packages, build ros2_ws, write env.sh (i
 lint: setup  ## ruff over the whole tree
 	@$(ENV) && ruff check .
 
-test: setup  ## set up if needed, then lint and the full test suite (three workers, then the timing tests alone; a recap of failures last)
+test: setup  ## set up if needed, then lint and the full test suite (two workers, then the timing tests alone; a recap of failures last)
 	@$(ENV) && scripts/test.sh
 
 bench: setup bench-deps  ## speed benchmarks; JSON results in bench/results/

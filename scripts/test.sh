@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The test suite as `make test` runs it (after setup): ruff, the suite on three workers, then the
+# The test suite as `make test` runs it (after setup): ruff, the suite on two workers, then the
 # timing tests alone. Ends with a recap of every failed or errored test of both runs, so the last
 # lines of the output (all a CI log may keep) name what failed. Exit status: non-zero if any failed.
 set -uo pipefail
@@ -10,7 +10,7 @@ ruff check . || exit $?
 logs=$(mktemp -d)
 trap 'rm -rf "$logs"' EXIT
 
-python -m pytest -n 3 -m "not timing" "$@" 2>&1 | tee "$logs/suite.log"
+python -m pytest -n 2 -m "not timing" "$@" 2>&1 | tee "$logs/suite.log"
 suite=${PIPESTATUS[0]}
 python -m pytest -m timing "$@" 2>&1 | tee "$logs/timing.log"
 timing=${PIPESTATUS[0]}

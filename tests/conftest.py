@@ -1,7 +1,8 @@
 """Shared pytest setup: every ROS context in the test process stays on loopback, over UDP.
 
-``make test`` runs the suite on three pytest-xdist workers (most tests wait on other processes or on
-the wall clock, so even two workers leave the two cores partly idle). Each worker gets its own range of
+``make test`` runs the suite on two pytest-xdist workers, one per core: a third kept the cores busier
+but did not finish sooner, and the 1 kHz simulators it ran beside fell further behind real time
+(docs/measurements.md). Each worker gets its own range of
 ROS domain ids; a test module stays on one worker (module fixtures are built once); the modules that
 start franky-sim (127.0.0.1's libfranka ports) share one worker. The longest modules start first so
 that no worker is left with a long tail.
