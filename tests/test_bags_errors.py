@@ -137,6 +137,15 @@ def test_resim_on_a_bag_without_reset_states_or_episodes_says_so(tmp_path):
     assert_clean_error(run_tool("nf_bags.resim", str(bag), "--episode", "1"), "nothing to re-simulate")
 
 
+def test_resim_policy_says_why_it_cannot_rebuild_an_episode(broken_bags, tmp_path):
+    assert_clean_error(run_tool("nf_bags.resim_policy", str(broken_bags["missing"][0])), *broken_bags["missing"][1])
+    # the sample's policy messages predate the law fields: its policy cannot be run again as it was
+    assert_clean_error(run_tool("nf_bags.resim_policy", str(SAMPLE)), "cannot be rebuilt", "potential_force_bound")
+    # joint states without rollouts: nothing to re-simulate in closed loop
+    bag = _subset_bag(tmp_path / "states_only", {"/joint_states", "/task_status"})
+    assert_clean_error(run_tool("nf_bags.resim_policy", str(bag)), "no complete episode")
+
+
 def test_message_class_names_bad_type_names_and_play_refuses_them(tmp_path):
     with pytest.raises(ValueError, match="not a message type name"):
         message_class("Foo")

@@ -110,7 +110,11 @@ def resimulate_episode(bag: str | Path, chunks: list, traj: object, params_by_ve
     version = int(chunks[0].policy_version)
     if version not in params_by_version:
         raise ValueError(f"episode {chunks[0].episode_id} ran policy version {version}, which the bag does not hold")
-    params = PolicyParameters.from_msg(params_by_version[version])
+    try:
+        params = PolicyParameters.from_msg(params_by_version[version])
+    except (AttributeError, ValueError) as exc:  # a bag recorded before the policy carried its law, ...
+        raise ValueError(f"episode {chunks[0].episode_id}: its policy (version {version}) cannot be rebuilt from "
+                         f"the bag's PolicyParameters: {exc}") from None
     period = float(np.median(np.diff(rec.t))) if len(rec.t) > 1 else 1e-2
     steps = max(int(round(period / 1e-3)), 1)  # 1 ms control steps per decision
     n = len(rec.t)
