@@ -195,16 +195,24 @@ def test_run_robot_end_to_end_on_franky_sim(tmp_path):
     from ros_testing import RosProcess, allocate_domain_id
 
     domain = allocate_domain_id()
-    out = tmp_path / "run"
     short = ["learner_node:rollouts_per_iter:=3", "learner_node:eval_episodes:=1", "learner_node:episode_seconds:=1.0",
              "learner_node:evaluate_prior:=false"]
-    args = ["-m", "nf_bringup.robot_run", "--iterations", "1", "--out", str(out), "--domain-id", str(domain),
-            *[a for kv in short for a in ("--learner-arg=-p", f"--learner-arg={kv}")]]
-    run = RosProcess(args, domain, tmp_path / "run_robot.log")
-    try:
-        assert run.proc.wait(840) == 0, run.log()
-    finally:
-        run.stop()
+    # a loaded machine can garble franky-sim's very first motion ("Unexpected reply to a Move command"), after
+    # which the stack does not recover yet (status stops, the learner gives up); then the whole run starts once more
+    for attempt in ("run", "again"):
+        out = tmp_path / attempt
+        args = ["-m", "nf_bringup.robot_run", "--iterations", "1", "--out", str(out), "--domain-id", str(domain),
+                *[a for kv in short for a in ("--learner-arg=-p", f"--learner-arg={kv}")]]
+        run = RosProcess(args, domain, tmp_path / f"run_robot_{attempt}.log")
+        try:
+            code = run.proc.wait(840)
+        finally:
+            run.stop()
+        if code != 0 and attempt == "run" and "Unexpected reply to a Move command" in run.log():
+            print("franky-sim garbled the first motion; the run starts once more")
+            continue
+        assert code == 0, run.log()
+        break
     log = run.log()
     assert "[run] franky-sim up on 127.0.0.1 (FR3, gear cell)" in log and "[run] done in" in log, log
     history = json.loads((out / "learner" / "metrics.json").read_text())
